@@ -1,0 +1,55 @@
+"""The records one loop cycle produces, as flat slotted classes.
+
+They are built once per cycle on the loop thread and handed to the logger as they are,
+so they stay small, typed and cheap; field names are the log's JSON keys
+(see docs/log-format.md), units in the names.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(slots=True)
+class Sample:
+    """Everything the loop knew and did in one cycle."""
+
+    seq: int
+    t_s: float
+    raw_counts: int
+    sensor_m: float
+    status: int
+    setpoint_m: float
+    error_m: float
+    p_v: float
+    i_v: float
+    d_v: float
+    command_v: float
+    applied_v: float
+    saturated: bool
+    state: str
+
+
+@dataclass(slots=True)
+class Truth:
+    """What only a simulation knows: the true state behind the sensor reading."""
+
+    seq: int
+    t_s: float
+    tilt_rad: float
+    thermal_tilt_rad: float
+    cooler_tilt_rad: float
+    piezo_tilt_rad: float
+    pendulum_rad: float
+    temperature_k: float
+    sensor_drift_m: float
+
+
+@dataclass(slots=True)
+class Event:
+    """A discrete happening: start/stop, a gain change, a fault, a state transition."""
+
+    t_s: float
+    kind: str
+    reason: str
+    detail: dict[str, object]

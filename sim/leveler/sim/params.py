@@ -1,0 +1,148 @@
+"""Plant parameters in SI units, defaults from the paper (see PHYSICS.md).
+
+One `PlantParams` describes the whole simulated stand; it is the `[plant]` table of a
+config file, so a fitted model is just another config file.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Literal
+
+from leveler.config import non_negative, positive
+
+G_STANDARD = 9.80665
+
+
+@dataclass(frozen=True, slots=True)
+class PendulumParams:
+    """Inverted-pendulum tilt amplifier: a mass on a flexure, sensed at its end.
+
+    Defaults give the paper's example k = 0.1 N m/rad, m g L_cm = 0.09 N m/rad (N = 9).
+    """
+
+    model: Literal["linear", "nonlinear"] = "linear"
+    mass_kg: float = positive(0.185)
+    com_length_m: float = positive(0.0496)
+    flexure_stiffness_nm_per_rad: float = positive(0.1)
+    inertia_kgm2: float = positive(5.0e-4)
+    damping_nms_per_rad: float = non_negative(1.2e-4)
+    sensor_arm_m: float = positive(0.05)
+    gravity_m_per_s2: float = positive(G_STANDARD)
+
+    def __post_init__(self) -> None:
+        mgl = self.gravity_stiffness_nm_per_rad
+        k = self.flexure_stiffness_nm_per_rad
+        if mgl >= k:
+            raise ValueError(
+                f"inverted pendulum has no stable equilibrium: gravity stiffness m g L_cm = "
+                f"{mgl:.4g} N m/rad >= flexure stiffness k = {k:.4g} N m/rad "
+                "(reduce mass_kg or com_length_m, or stiffen the flexure)"
+            )
+
+    @property
+    def gravity_stiffness_nm_per_rad(self) -> float:
+        return self.mass_kg * self.gravity_m_per_s2 * self.com_length_m
+
+    @property
+    def amplification(self) -> float:
+        """Small-angle N = theta/phi = 1 / (k / (m g L_cm) - 1)."""
+        return 1.0 / (self.flexure_stiffness_nm_per_rad / self.gravity_stiffness_nm_per_rad - 1.0)
+
+    @property
+    def natural_frequency_hz(self) -> float:
+        k_eff = self.flexure_stiffness_nm_per_rad - self.gravity_stiffness_nm_per_rad
+        return math.sqrt(k_eff / self.inertia_kgm2) / (2 * math.pi)
+
+
+@dataclass(frozen=True, slots=True)
+class PlatformParams:
+    """The table: tilt = piezo stroke / support spacing + disturbances + offset."""
+
+    support_spacing_m: float = positive(0.5)
+    initial_tilt_rad: float = 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class ThermalParams:
+    """Plate temperature (random walk + daily cycle) -> first-order lag -> tilt.
+
+    The default random walk is what puts the open-loop sensor ASD at 0.1 mHz near the
+    paper's 5.7 um/sqrt(Hz); 10 urad/K is the paper's iron-table example (+-2 K, +-20 urad).
+    """
+
+    mean_k: float = positive(295.15)
+    random_walk_k_per_sqrt_s: float = non_negative(8.5e-4)
+    daily_amplitude_k: float = non_negative(0.3)
+    daily_phase_rad: float = 0.0
+    lag_s: float = non_negative(1800.0)
+    tilt_per_kelvin_rad_per_k: float = 1.0e-5
+
+
+@dataclass(frozen=True, slots=True)
+class CoolerParams:
+    """A water cooler's sawtooth tilt, as the paper's inverted pendulum saw it.
+
+    The table cannot jump: the tilt ramps up for (1 - fall_fraction) of the period and
+    back down in the rest (fall_fraction = 0.5 is a triangle).
+    """
+
+    period_s: float = positive(300.0)
+    peak_to_peak_rad: float = non_negative(2.8e-8)
+    fall_fraction: float = field(default=0.1, metadata={"gt": 0.0, "le": 0.5})
+    phase_s: float = non_negative(0.0)
+
+
+@dataclass(frozen=True, slots=True)
+class PiezoParams:
+    """Piezo actuator under one support: voltage range, stroke per volt, slew limit."""
+
+    min_v: float = 0.0
+    max_v: float = 150.0
+    gain_m_per_v: float = positive(1.0e-7)
+    slew_v_per_s: float = positive(100.0)
+    ref_v: float = 75.0
+
+    def __post_init__(self) -> None:
+        if not self.min_v < self.max_v:
+            raise ValueError(f"piezo.min_v ({self.min_v}) must be below max_v ({self.max_v})")
+        if not self.min_v <= self.ref_v <= self.max_v:
+            raise ValueError(f"piezo.ref_v ({self.ref_v}) must lie in [min_v, max_v]")
+
+
+@dataclass(frozen=True, slots=True)
+class SensorParams:
+    """Capacitive displacement sensor and the ADC that digitizes its voltage."""
+
+    gain_v_per_m: float = positive(2.0e5)
+    offset_v: float = 0.0
+    noise_m_per_rthz: float = non_negative(5.0e-10)
+    drift_m_per_sqrt_s: float = non_negative(9.0e-12)
+    adc_bits: int = field(default=16, metadata={"ge": 2, "le": 32})
+    adc_min_v: float = -10.0
+    adc_max_v: float = 10.0
+
+    def __post_init__(self) -> None:
+        if not self.adc_min_v < self.adc_max_v:
+            raise ValueError(f"sensor.adc_min_v ({self.adc_min_v}) must be below adc_max_v")
+
+    @property
+    def lsb_v(self) -> float:
+        return (self.adc_max_v - self.adc_min_v) / (2**self.adc_bits - 1)
+
+    @property
+    def lsb_m(self) -> float:
+        return self.lsb_v / self.gain_v_per_m
+
+
+@dataclass(frozen=True, slots=True)
+class PlantParams:
+    """The whole simulated stand."""
+
+    pendulum: PendulumParams = field(default_factory=PendulumParams)
+    platform: PlatformParams = field(default_factory=PlatformParams)
+    thermal: ThermalParams = field(default_factory=ThermalParams)
+    cooler: CoolerParams = field(default_factory=CoolerParams)
+    piezo: PiezoParams = field(default_factory=PiezoParams)
+    sensor: SensorParams = field(default_factory=SensorParams)
