@@ -1,0 +1,294 @@
+"""PID controller: piezo volts from a displacement-sensor reading in metres.
+
+Design choices, and why:
+
+* The derivative acts on the (low-passed) measurement, not the error, so a setpoint step
+  never kicks the piezo; setpoint changes are also ramped so the proportional term moves
+  gently.
+* The integral is stored in volts, not metre-seconds, so retuning ``ki`` (or any gain,
+  through :meth:`PID.set_gains`) does not jump the output.
+* Anti-windup is back-calculation plus a freeze. Back-calculation bleeds off whatever
+  the integral holds beyond the rail; the freeze stops it ever growing toward a rail the
+  output sits on, so however long the output saturates it leaves the rail within a few
+  samples of the error reversing.
+* It never reads a clock: the caller passes ``dt``, so simulation and hardware share one
+  code path and tests are deterministic.
+* :meth:`PID.update` runs at up to 1 kHz in Python next to a simulator, so it is plain
+  float arithmetic on slotted attributes, allocating only the returned record.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+_INF = math.inf
+
+# Back-calculation gain per sample when kp == 0 leaves no time scale to derive the tracking
+# time from: track over about three samples, i.e. dt / (Tt + dt) with Tt = 3 dt.
+_SAMPLE_TRACKING_GAIN = 1.0 / (3.0 + 1.0)
+
+
+def _require_finite(name: str, value: float) -> None:
+    if not math.isfinite(value):
+        raise ValueError(f"{name} must be finite, got {value!r}")
+
+
+def _require_non_negative(name: str, value: float) -> None:
+    if not 0.0 <= value < _INF:
+        raise ValueError(f"{name} must be finite and >= 0, got {value!r}")
+
+
+def _require_rate(name: str, value: float) -> None:
+    # inf is allowed: it is the documented "no limit" value.
+    if not value > 0.0:
+        raise ValueError(f"{name} must be > 0 (inf for no limit), got {value!r}")
+
+
+@dataclass(frozen=True, slots=True)
+class PIDGains:
+    """Gains in SI units. Any sign is accepted, so a reverse-acting plant needs no wrapper."""
+
+    kp: float  # V/m
+    ki: float  # V/(m s)
+    kd: float  # V s/m
+
+    def __post_init__(self) -> None:
+        _require_finite("kp", self.kp)
+        _require_finite("ki", self.ki)
+        _require_finite("kd", self.kd)
+
+
+@dataclass(frozen=True, slots=True)
+class PIDConfig:
+    """Everything that shapes the controller; validated here so the hot path need not be."""
+
+    gains: PIDGains
+    output_min_v: float
+    output_max_v: float
+    setpoint_m: float = 0.0
+    slew_v_per_s: float = math.inf  # output rate limit
+    d_filter_tau_s: float = 0.0  # first-order low-pass on the derivative; 0 = none
+    setpoint_ramp_m_per_s: float = math.inf  # setpoint changes ramp at this rate
+    tracking_time_s: float = 0.0  # back-calculation time constant; 0 = derived from the gains
+
+    def __post_init__(self) -> None:
+        _require_finite("output_min_v", self.output_min_v)
+        _require_finite("output_max_v", self.output_max_v)
+        if not self.output_min_v < self.output_max_v:
+            raise ValueError(
+                f"output_min_v must be < output_max_v, got {self.output_min_v!r} "
+                f">= {self.output_max_v!r}"
+            )
+        _require_finite("setpoint_m", self.setpoint_m)
+        _require_rate("slew_v_per_s", self.slew_v_per_s)
+        _require_non_negative("d_filter_tau_s", self.d_filter_tau_s)
+        _require_rate("setpoint_ramp_m_per_s", self.setpoint_ramp_m_per_s)
+        _require_non_negative("tracking_time_s", self.tracking_time_s)
+
+
+@dataclass(frozen=True, slots=True)
+class PIDOutput:
+    """One update's result; ``p_v + i_v + d_v`` is the command before clamping and slewing."""
+
+    setpoint_m: float  # effective (ramped) setpoint
+    error_m: float
+    p_v: float
+    i_v: float
+    d_v: float
+    command_v: float
+    saturated: bool  # command_v differs from p_v + i_v + d_v (rail or slew limit)
+
+
+def _auto_tracking_time(gains: PIDGains) -> float:
+    """Åström and Hägglund's rule: sqrt(Ti Td) with derivative action, Ti without.
+
+    0.0 tells ``update`` to track over a few samples instead (kp == 0 gives no Ti);
+    inf disables tracking when there is no integral action to wind up.
+    """
+    if gains.ki == 0.0:
+        return _INF
+    if gains.kp == 0.0:
+        return 0.0
+    if gains.kd == 0.0:
+        return abs(gains.kp / gains.ki)
+    return math.sqrt(abs(gains.kd / gains.ki))
+
+
+class PID:
+    """Discrete PID with measurement derivative, setpoint ramp, slew limit and anti-windup."""
+
+    __slots__ = (
+        "_config",
+        "_df",
+        "_err",
+        "_hi",
+        "_i",
+        "_kd",
+        "_ki",
+        "_kp",
+        "_lo",
+        "_out",
+        "_prev",
+        "_ramp",
+        "_slew",
+        "_sp",
+        "_target",
+        "_tau",
+        "_tt",
+        "_u",
+    )
+
+    def __init__(self, config: PIDConfig, initial_output_v: float | None = None) -> None:
+        """Start at ``initial_output_v`` (default 0 V), clamped into the output range.
+
+        The first update preloads the integral so that it outputs exactly this value:
+        taking over an actuator that already holds a voltage must not kick it.
+        """
+        out = 0.0 if initial_output_v is None else initial_output_v
+        _require_finite("initial_output_v", out)
+        self._apply(config)
+        self._sp = config.setpoint_m
+        self._out = min(max(out, self._lo), self._hi)
+        self._u = self._out
+        self._i = self._out
+        self._err = 0.0
+        self._df = 0.0
+        self._prev: float | None = None  # None: the next update seeds the loop state
+
+    @property
+    def config(self) -> PIDConfig:
+        """The current configuration, including gain, limit, slew and setpoint changes."""
+        return self._config
+
+    @property
+    def output_v(self) -> float:
+        """The last command, always within the current output limits."""
+        return self._out
+
+    def _apply(self, config: PIDConfig) -> None:
+        # Copy the configuration into plain attributes: update() reads them every sample.
+        gains = config.gains
+        self._config = config
+        self._kp = gains.kp
+        self._ki = gains.ki
+        self._kd = gains.kd
+        self._lo = config.output_min_v
+        self._hi = config.output_max_v
+        self._slew = config.slew_v_per_s
+        self._tau = config.d_filter_tau_s
+        self._ramp = config.setpoint_ramp_m_per_s
+        self._target = config.setpoint_m
+        tt = config.tracking_time_s
+        self._tt = tt if tt > 0.0 else _auto_tracking_time(gains)
+
+    def update(self, measurement_m: float, dt_s: float) -> PIDOutput:
+        """Advance one sample of ``dt_s`` seconds and return the new command.
+
+        Raises ValueError for a non-positive or non-finite ``dt_s`` or a non-finite
+        measurement: the caller decides what a bad reading means, not the controller.
+        """
+        if not 0.0 < dt_s < _INF:
+            raise ValueError(f"dt_s must be finite and > 0, got {dt_s!r}")
+        if not -_INF < measurement_m < _INF:
+            raise ValueError(f"measurement_m must be finite, got {measurement_m!r}")
+
+        sp = self._sp
+        target = self._target
+        if sp != target:
+            step = self._ramp * dt_s
+            if target - sp > step:
+                sp += step
+            elif sp - target > step:
+                sp -= step
+            else:
+                sp = target
+            self._sp = sp
+        error = sp - measurement_m
+        p = self._kp * error
+
+        prev = self._prev
+        if prev is None:
+            # No derivative without a previous sample; preload the integral so that this
+            # first output is exactly the one the controller was created with.
+            df = 0.0
+            self._i = self._out - p
+        else:
+            # Backward-Euler first-order low-pass of d(measurement)/dt; exact difference
+            # quotient when tau == 0.
+            tau = self._tau
+            df = (tau * self._df + (measurement_m - prev)) / (tau + dt_s)
+        d = -self._kd * df
+        i = self._i
+        u = p + i + d
+
+        lo = self._lo
+        hi = self._hi
+        cmd = lo if u < lo else hi if u > hi else u
+        last = self._out
+        step = self._slew * dt_s
+        if cmd > last + step:
+            cmd = last + step
+        elif cmd < last - step:
+            cmd = last - step
+
+        # Back-calculation discretised as dt / (Tt + dt) rather than dt / Tt, so a long
+        # sample (dt >= Tt) pulls the integral back to the rail instead of overshooting.
+        tt = self._tt
+        k_track = dt_s / (tt + dt_s) if tt > 0.0 else _SAMPLE_TRACKING_GAIN
+        delta = self._ki * error * dt_s + (cmd - u) * k_track
+        if (delta > 0.0 and cmd >= hi) or (delta < 0.0 and cmd <= lo):
+            delta = 0.0  # freeze: never integrate further into the rail we sit on
+        self._i = i + delta
+
+        self._out = cmd
+        self._u = u
+        self._err = error
+        self._df = df
+        self._prev = measurement_m
+        return PIDOutput(sp, error, p, i, d, cmd, cmd != u)
+
+    def set_gains(self, gains: PIDGains) -> None:
+        """Change gains without a bump: the next output continues from the current one.
+
+        The integral is re-solved so that the new p + i + d equals the last unclamped
+        output at the last error and filtered derivative. This gives up the integral step
+        taken in the last update, a one-sample loss the loop makes up at once.
+        """
+        config = replace(self._config, gains=gains)
+        self._i = self._u - gains.kp * self._err + gains.kd * self._df
+        self._apply(config)
+
+    def set_setpoint(self, setpoint_m: float) -> None:
+        """Set the target; the effective setpoint ramps toward it in later updates."""
+        self._apply(replace(self._config, setpoint_m=setpoint_m))
+
+    def set_limits(self, output_min_v: float, output_max_v: float) -> None:
+        """Change the output range; a narrowed range clamps the output at once.
+
+        Limits win over the slew limit: they protect the hardware, the slew only smooths.
+        """
+        self._apply(replace(self._config, output_min_v=output_min_v, output_max_v=output_max_v))
+        self._out = min(max(self._out, self._lo), self._hi)
+
+    def set_slew(self, slew_v_per_s: float) -> None:
+        """Change the output rate limit (V/s, inf for none)."""
+        self._apply(replace(self._config, slew_v_per_s=slew_v_per_s))
+
+    def engage(self, measurement_m: float, output_v: float) -> None:
+        """Bumpless enable: take over an actuator that currently holds ``output_v``.
+
+        The next update with the same measurement outputs ``output_v`` (clamped). The
+        derivative is seeded from this measurement, so the loop does not see a jump from
+        whatever it last measured while disengaged.
+        """
+        _require_finite("measurement_m", measurement_m)
+        _require_finite("output_v", output_v)
+        out = min(max(output_v, self._lo), self._hi)
+        error = self._sp - measurement_m
+        self._prev = measurement_m
+        self._df = 0.0
+        self._err = error
+        self._out = out
+        self._u = out
+        self._i = out - self._kp * error
