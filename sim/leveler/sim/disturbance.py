@@ -12,8 +12,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from leveler.sim.params import PlantParams
 from scipy.signal import lfilter
+
+from leveler.sim.params import PlantParams
 
 DAY_S = 86400.0
 

@@ -11,9 +11,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from leveler.sim.params import PendulumParams
 from scipy.linalg import expm
 from scipy.optimize import brentq
+
+from leveler.sim.params import PendulumParams
 
 
 def equilibrium_angle(p: PendulumParams, phi_rad: float) -> float:

@@ -9,11 +9,10 @@ from __future__ import annotations
 
 import math
 
+from leveler.records import Truth
 from leveler.sim.disturbance import Block, Disturbances
 from leveler.sim.params import PlantParams
 from leveler.sim.pendulum import PendulumModel
-
-from leveler.records import Truth
 
 
 class Plant:

@@ -1,0 +1,65 @@
+"""Driver protocols: what the loop needs from a sensor and an actuator, in SI units.
+
+Every backend (simulated plant, serial, Modbus) implements these, so switching
+hardware changes configuration, not code. Drivers translate device errors into
+`DriverError` at their edge; the loop turns those into a safe state.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+
+class DriverError(RuntimeError):
+    """A device failed to connect, read or write; the message says which and why."""
+
+
+class Status(enum.IntEnum):
+    """Quality of one reading; anything but OK must not be fed to the controller."""
+
+    OK = 0
+    TIMEOUT = 1
+    INVALID = 2
+    RAILED = 3
+    FAULT = 4
+
+
+@dataclass(frozen=True, slots=True)
+class Reading:
+    """One sensor sample: loop time, raw ADC counts and the displacement they mean."""
+
+    t_s: float
+    raw_counts: int
+    value_m: float
+    status: Status = Status.OK
+
+
+@runtime_checkable
+class Sensor(Protocol):
+    """A displacement sensor read once per loop cycle."""
+
+    def connect(self) -> None: ...
+
+    def read(self, t_s: float) -> Reading: ...
+
+    def close(self) -> None: ...
+
+
+@runtime_checkable
+class Actuator(Protocol):
+    """A voltage-driven actuator; `make_safe` must work even after a failed write."""
+
+    @property
+    def safe_v(self) -> float: ...
+
+    def connect(self) -> None: ...
+
+    def write(self, command_v: float, t_s: float) -> float:
+        """Command a voltage; returns the voltage actually applied (clamped, slewed)."""
+        ...
+
+    def make_safe(self) -> None: ...
+
+    def close(self) -> None: ...

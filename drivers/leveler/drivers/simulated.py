@@ -1,0 +1,55 @@
+"""The simulated plant as a driver: one object that is both the sensor and the actuator.
+
+It paces nothing: `read(t)` advances the plant to loop time t in its fixed steps, so the
+same class serves the real-time daemon and virtual-time simulation.
+"""
+
+from __future__ import annotations
+
+from leveler.drivers.base import DriverError, Reading, Status
+from leveler.records import Truth
+from leveler.sim.plant import Plant
+
+
+class SimulatedStand:
+    """Sensor + actuator backed by `leveler.sim.plant.Plant`."""
+
+    def __init__(self, plant: Plant, safe_v: float) -> None:
+        pz = plant.params.piezo
+        if not pz.min_v <= safe_v <= pz.max_v:
+            raise DriverError(
+                f"safe_v {safe_v} V outside the piezo range [{pz.min_v}, {pz.max_v}] V")
+        self.plant = plant
+        self._safe_v = safe_v
+        self._connected = False
+
+    @property
+    def safe_v(self) -> float:
+        return self._safe_v
+
+    def connect(self) -> None:
+        self._connected = True
+
+    def close(self) -> None:
+        self._connected = False
+
+    def read(self, t_s: float) -> Reading:
+        if not self._connected:
+            raise DriverError("simulated sensor read before connect()")
+        plant = self.plant
+        target = round(t_s / plant.dt_s)
+        while plant.n < target:
+            plant.step()
+        counts, value_m, railed = plant.measure()
+        return Reading(t_s, counts, value_m, Status.RAILED if railed else Status.OK)
+
+    def write(self, command_v: float, t_s: float) -> float:
+        if not self._connected:
+            raise DriverError("simulated actuator written before connect()")
+        return self.plant.command(command_v)
+
+    def make_safe(self) -> None:
+        self.plant.command(self._safe_v)
+
+    def truth(self, seq: int, t_s: float) -> Truth:
+        return self.plant.truth(seq, t_s)

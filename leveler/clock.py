@@ -1,0 +1,85 @@
+"""Clocks that hand the loop its time: real (absolute deadlines) or virtual (as fast as possible).
+
+The loop never reads a clock itself; it asks one of these for the next tick, so the daemon,
+`leveler sim` and the tests run exactly the same code.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+
+import numpy as np
+
+
+class VirtualClock:
+    """Ticks n * period without waiting; wall time is a fixed start plus virtual time."""
+
+    def __init__(self, period_s: float, start_wall_ns: int | None = None) -> None:
+        self.period_s = period_s
+        self.start_wall_ns = time.time_ns() if start_wall_ns is None else start_wall_ns
+        self._n = -1
+
+    def tick(self) -> float:
+        self._n += 1
+        return self._n * self.period_s
+
+    def wall_ns(self, t_s: float) -> int:
+        return self.start_wall_ns + round(t_s * 1e9)
+
+
+class RealtimeClock:
+    """Paces on absolute deadlines (start + n * period) so jitter never accumulates.
+
+    A cycle that wakes more than a period late is an overrun: counted, and the schedule
+    skips the missed deadlines instead of bursting to catch up. Lateness and the measured
+    periods of the last `window` cycles give the statistics the status line prints.
+    """
+
+    def __init__(self, period_s: float, window: int = 100_000) -> None:
+        self.period_s = period_s
+        self._period_ns = round(period_s * 1e9)
+        self._start_ns = time.monotonic_ns()
+        self._wall0_ns = time.time_ns()
+        self._next_ns = self._start_ns
+        self._last_ns: int | None = None
+        self.overruns = 0
+        self.cycles = 0
+        self._periods_ns: deque[int] = deque(maxlen=window)
+        self._late_ns: deque[int] = deque(maxlen=window)
+
+    def tick(self) -> float:
+        """Sleep until the next deadline; returns loop time (s since start) of that deadline."""
+        now = time.monotonic_ns()
+        if self._next_ns > now:
+            time.sleep((self._next_ns - now) / 1e9)
+            now = time.monotonic_ns()
+        late = now - self._next_ns
+        if late > self._period_ns:
+            self.overruns += 1
+            self._next_ns += (late // self._period_ns) * self._period_ns
+        deadline = self._next_ns
+        self._next_ns += self._period_ns
+        self._late_ns.append(now - deadline)
+        if self._last_ns is not None:
+            self._periods_ns.append(now - self._last_ns)
+        self._last_ns = now
+        self.cycles += 1
+        return (deadline - self._start_ns) / 1e9
+
+    def wall_ns(self, t_s: float) -> int:
+        return time.time_ns()
+
+    def stats(self) -> dict[str, float]:
+        """Period p50/p99/max and lateness p99 in seconds over the recent window."""
+        if not self._periods_ns:
+            return {"period_p50_s": 0.0, "period_p99_s": 0.0, "period_max_s": 0.0,
+                    "late_p99_s": 0.0}
+        per = np.fromiter(self._periods_ns, dtype=np.int64) / 1e9
+        late = np.fromiter(self._late_ns, dtype=np.int64) / 1e9
+        return {
+            "period_p50_s": float(np.percentile(per, 50)),
+            "period_p99_s": float(np.percentile(per, 99)),
+            "period_max_s": float(per.max()),
+            "late_p99_s": float(np.percentile(late, 99)),
+        }

@@ -1,0 +1,101 @@
+"""The daemon's configuration file: one typed, validated tree (see docs/configuration.md)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from leveler.config import ConfigError, build, load_toml, non_negative, positive
+from leveler.pid import PIDConfig, PIDGains
+from leveler.sim.params import PlantParams
+
+
+@dataclass(frozen=True, slots=True)
+class LoopConfig:
+    rate_hz: float = positive(10.0)
+    status_interval_s: float = positive(5.0)
+    engage_on_start: bool = True
+
+
+@dataclass(frozen=True, slots=True)
+class LogConfig:
+    dir: str = "logs"
+    chunk_interval_s: float = positive(1.0)
+    compression: Literal["zstd", "lz4", "none"] = "zstd"
+
+
+@dataclass(frozen=True, slots=True)
+class ControllerConfig:
+    """PID from sensor metres to actuator volts; error = setpoint - reading."""
+
+    kp_v_per_m: float = 0.0
+    ki_v_per_m_s: float = 7.0e5
+    kd_v_s_per_m: float = 0.0
+    setpoint_m: float = 0.0
+    output_min_v: float = 0.0
+    output_max_v: float = 150.0
+    slew_v_per_s: float = positive(10.0, allow_inf=True)
+    d_filter_tau_s: float = non_negative(0.5)
+    setpoint_ramp_m_per_s: float = positive(math.inf, allow_inf=True)
+    tracking_time_s: float = non_negative(0.0)
+
+    def __post_init__(self) -> None:
+        if not self.output_min_v < self.output_max_v:
+            raise ValueError(
+                f"output_min_v ({self.output_min_v}) must be below "
+                f"output_max_v ({self.output_max_v})"
+            )
+
+    def pid_config(self) -> PIDConfig:
+        return PIDConfig(
+            gains=PIDGains(self.kp_v_per_m, self.ki_v_per_m_s, self.kd_v_s_per_m),
+            output_min_v=self.output_min_v,
+            output_max_v=self.output_max_v,
+            setpoint_m=self.setpoint_m,
+            slew_v_per_s=self.slew_v_per_s,
+            d_filter_tau_s=self.d_filter_tau_s,
+            setpoint_ramp_m_per_s=self.setpoint_ramp_m_per_s,
+            tracking_time_s=self.tracking_time_s,
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class SensorConfig:
+    backend: Literal["sim"] = "sim"
+
+
+@dataclass(frozen=True, slots=True)
+class ActuatorConfig:
+    backend: Literal["sim"] = "sim"
+    safe_v: float = 75.0
+
+
+@dataclass(frozen=True, slots=True)
+class SimConfig:
+    """Simulation-only settings (the plant itself is [plant])."""
+
+    seed: int = field(default=0, metadata={"ge": 0})
+
+
+@dataclass(frozen=True, slots=True)
+class Config:
+    loop: LoopConfig = field(default_factory=LoopConfig)
+    log: LogConfig = field(default_factory=LogConfig)
+    controller: ControllerConfig = field(default_factory=ControllerConfig)
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+    actuator: ActuatorConfig = field(default_factory=ActuatorConfig)
+    plant: PlantParams = field(default_factory=PlantParams)
+    sim: SimConfig = field(default_factory=SimConfig)
+
+
+def load_config(path: str | Path) -> tuple[Config, str]:
+    """Read and validate a config file; returns it with its text (kept in every log)."""
+    path = Path(path)
+    data = load_toml(path)
+    try:
+        cfg = build(Config, data)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+    return cfg, path.read_text()

@@ -1,0 +1,39 @@
+"""Builds the drivers a config asks for, so the loop never knows which backend it drives."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from leveler.drivers.base import Actuator, Sensor
+from leveler.drivers.simulated import SimulatedStand
+from leveler.records import Truth
+from leveler.settings import Config
+from leveler.sim.plant import Plant
+
+
+@dataclass
+class Stand:
+    """The connected hardware (or its simulation) the loop drives."""
+
+    sensor: Sensor
+    actuator: Actuator
+    truth: Callable[[int, float], Truth] | None
+
+    def connect(self) -> None:
+        self.sensor.connect()
+        if self.actuator is not self.sensor:
+            self.actuator.connect()
+
+    def close(self) -> None:
+        self.sensor.close()
+        if self.actuator is not self.sensor:
+            self.actuator.close()
+
+
+def open_stand(cfg: Config, seed: int | None = None) -> Stand:
+    """Make (not yet connect) the drivers named in cfg; `seed` overrides [sim] seed."""
+    dt_s = 1.0 / cfg.loop.rate_hz
+    plant = Plant(cfg.plant, dt_s, cfg.sim.seed if seed is None else seed)
+    sim = SimulatedStand(plant, cfg.actuator.safe_v)
+    return Stand(sensor=sim, actuator=sim, truth=sim.truth)

@@ -1,0 +1,97 @@
+"""Config errors name the file and the key, and nothing is guessed."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from leveler.config import ConfigError
+from leveler.durations import parse_duration
+from leveler.settings import Config, load_config
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "lab.toml"
+    path.write_text(text)
+    return path
+
+
+def test_shipped_sim_config_loads_and_matches_the_paper() -> None:
+    cfg, text = load_config(REPO / "config" / "sim.toml")
+    assert isinstance(cfg, Config)
+    assert "[controller]" in text
+    assert cfg.plant.pendulum.amplification == pytest.approx(9.0, rel=0.01)
+    assert cfg.sensor.backend == "sim"
+
+
+def test_empty_config_takes_the_defaults(tmp_path: Path) -> None:
+    cfg, _ = load_config(write(tmp_path, ""))
+    assert cfg == Config()
+
+
+@pytest.mark.parametrize(
+    ("text", "needle"),
+    [
+        ("[loop]\nrate_hz = 'fast'\n", "loop.rate_hz: expected a number"),
+        ("[loop]\nrate_hz = -10.0\n", "loop.rate_hz: must be > 0"),
+        ("[loop]\nrate_hz = nan\n", "loop.rate_hz: must be finite"),
+        ("[loop]\nrate_hx = 10.0\n", "loop.rate_hx: unknown key"),
+        ("[lop]\nrate_hz = 10.0\n", "lop: unknown key"),
+        ("[controller]\nki_v_per_m_s = true\n", "controller.ki_v_per_m_s: expected a number"),
+        ("[controller]\noutput_min_v = 200.0\n", "output_min_v (200.0) must be below"),
+        ("[sensor]\nbackend = 'serial9'\n", "sensor.backend: expected 'sim'"),
+        ("[plant.sensor]\nadc_bits = 16.5\n", "plant.sensor.adc_bits: expected an integer"),
+        ("[plant.pendulum]\nmass_kg = 1.0\n", "no stable equilibrium"),
+        ("[plant]\npendulum = 3\n", "plant.pendulum: expected a table"),
+        ("[loop\nrate_hz = 1\n", "invalid TOML"),
+    ],
+)
+def test_bad_values_name_file_and_key(tmp_path: Path, text: str, needle: str) -> None:
+    path = write(tmp_path, text)
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    assert str(path) in str(err.value)
+    assert needle in str(err.value)
+
+
+def test_missing_file_is_a_clear_error(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="no such config file"):
+        load_config(tmp_path / "absent.toml")
+
+
+@pytest.mark.parametrize(
+    ("text", "seconds"),
+    [("3600s", 3600.0), ("90m", 5400.0), ("6h", 21600.0), ("1d", 86400.0), ("2.5", 2.5),
+     ("24h", 86400.0), ("10min", 600.0)],
+)
+def test_durations(text: str, seconds: float) -> None:
+    assert parse_duration(text) == seconds
+
+
+@pytest.mark.parametrize("text", ["", "h", "-5s", "0", "6 hours", "1e400"])
+def test_bad_durations(text: str) -> None:
+    with pytest.raises(ValueError, match="bad duration"):
+        parse_duration(text)
+
+
+def _keys(cls: type, prefix: str = "") -> list[str]:
+    import dataclasses
+
+    out = []
+    for f in dataclasses.fields(cls):  # type: ignore[arg-type]
+        default = f.default_factory() if f.default_factory is not dataclasses.MISSING else None
+        if dataclasses.is_dataclass(default):
+            out += _keys(type(default), f"{prefix}{f.name}.")
+        else:
+            out.append(f"{prefix}{f.name}")
+    return out
+
+
+def test_every_key_is_documented() -> None:
+    doc = (REPO / "docs" / "configuration.md").read_text()
+    missing = [k for k in _keys(Config)
+               if f"`{k.rsplit('.', 1)[-1]}`" not in doc and f"`{k}`" not in doc]
+    assert not missing, f"undocumented config keys: {missing}"
