@@ -79,3 +79,23 @@ def test_daemon_refuses_a_bad_config_naming_the_key(tmp_path: Path) -> None:
     assert "loop.rate_hz" in proc.stderr and str(bad) in proc.stderr
     assert "Traceback" not in proc.stderr
     assert not (tmp_path / "logs").exists()
+
+
+@pytest.mark.parametrize("rate_hz", [10.0, 200.0])
+def test_sigkill_loses_at_most_about_a_second(tmp_path: Path, rate_hz: float) -> None:
+    """A daemon killed without warning leaves a log readable up to ~1 s before the kill."""
+    proc = start_daemon(tmp_path, rate_hz=rate_hz)
+    try:
+        lines = wait_for_status(proc, 5)
+        proc.kill()
+        proc.wait(timeout=10)
+    finally:
+        proc.kill()
+    # loop time of the last status line printed before the kill
+    last_t = float(lines[-1].split("t=")[1].split(" s")[0])
+    (log,) = (tmp_path / "logs").glob("leveler-*Z.mcap")
+    data = read_log(log)
+    assert not data.complete
+    seq = data.samples["seq"]
+    np.testing.assert_array_equal(seq, np.arange(len(seq)))
+    assert data.samples["t_s"][-1] >= last_t - 1.5, "lost more than ~1 s of samples"

@@ -73,7 +73,7 @@ class ThermalParams:
     """
 
     mean_k: float = positive(295.15)
-    random_walk_k_per_sqrt_s: float = non_negative(8.5e-4)
+    random_walk_k_per_sqrt_s: float = non_negative(6.7e-4)
     daily_amplitude_k: float = non_negative(0.3)
     daily_phase_rad: float = 0.0
     lag_s: float = non_negative(1800.0)
