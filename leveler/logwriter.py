@@ -9,6 +9,7 @@ chunk would otherwise stay open for minutes). See docs/log-format.md.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -51,6 +52,7 @@ from leveler.logreader import (
     LogError,
 )
 from leveler.records import Event, Sample, Truth
+from leveler.rt import demote_thread
 
 _log = logging.getLogger(__name__)
 
@@ -156,6 +158,9 @@ class _McapFile:
         self._metadata_indexes: list[MetadataIndex] = []
         self._counts: dict[int, int] = {}
         self._time_range: tuple[int, int] | None = None
+        # (end offset, messages per channel, newest log time) of each chunk since the last
+        # flush: after a failed write, the file's size tells which of them are whole.
+        self.unflushed: list[tuple[int, dict[int, int], int]] = []
         self._write(_MAGIC)
         self._record(Header(profile="", library=library))
 
@@ -222,6 +227,8 @@ class _McapFile:
                 uncompressed_size=len(data),
             )
         )
+        counts = {ch: self._counts[ch] + len(ix) // 2 for ch, ix in self._index.items()}
+        self.unflushed.append((self._pos, counts, end))
         index_start = self._pos
         offsets = {}
         for ch, ix in self._index.items():
@@ -254,6 +261,7 @@ class _McapFile:
     def flush(self) -> None:
         self.close_chunk()
         self._f.flush()
+        self.unflushed.clear()
 
     def finish(self) -> None:
         """Write the summary section and footer that seeking readers (Foxglove) rely on."""
@@ -350,7 +358,8 @@ class LogWriter:
             self._file.flush()  # header, topics and metadata reach the OS even if we die now
         except OSError as e:
             if hasattr(self, "_file"):
-                self._file.close()
+                with contextlib.suppress(OSError):  # the buffered header fails again (ENOSPC)
+                    self._file.close()
             raise LogError(f"{self._path}: cannot create log: {e.strerror}") from e
 
         self._interval = chunk_interval_s
@@ -362,6 +371,7 @@ class LogWriter:
         self._samples_written = 0
         self._event_seq = 0
         self._last = (0.0, 0)  # (t_s, log_time_ns) of the newest written record
+        self._flushed = (0, 0)  # (samples, newest log_time_ns) known to be in the file
         self._last_flush = time.monotonic()
         self._error: BaseException | None = None
         self._closed = False
@@ -386,6 +396,19 @@ class LogWriter:
     def samples_written(self) -> int:
         """Samples handed to the MCAP writer (on disk after the next chunk flush)."""
         return self._samples_written
+
+    @property
+    def bytes_written(self) -> int:
+        """Bytes in the file so far (closed chunks; the open one is still in memory):
+        cheap enough to read every sample, which is what size-based rotation needs."""
+        return self._mcap._pos
+
+    @property
+    def flushed(self) -> tuple[int, int]:
+        """(samples, log_time_ns of the newest record) in the file as of the last flush to
+        the OS or, once the writer failed, in the chunks that reached the file whole: what
+        a write error (disk full) cannot take back."""
+        return self._flushed
 
     @property
     def dropped(self) -> int:
@@ -470,6 +493,7 @@ class LogWriter:
     # -- consumer side: the writer thread ----------------------------------------------
 
     def _run(self) -> None:
+        demote_thread()  # file I/O must not run at the loop's real-time priority
         try:
             while True:
                 # Decide before draining, so the final drain sees every record queued
@@ -484,10 +508,15 @@ class LogWriter:
             self._mcap.finish()
             self._file.flush()
             os.fsync(self._file.fileno())
+            self._flushed = (self._samples_written, self._last[1])
         except BaseException as e:  # stored, re-raised on the producer side
+            self._count_whole_chunks()  # before the error is seen: `flushed` is final then
             self._error = e
         finally:
-            self._file.close()
+            try:
+                self._file.close()
+            except OSError as e:  # after a failed write it retries the buffered tail (ENOSPC)
+                self._error = self._error or e  # closed regardless; the first error matters
             with self._progress:
                 self._progress.notify_all()
 
@@ -544,7 +573,18 @@ class LogWriter:
     def _maybe_flush(self) -> None:
         if time.monotonic() - self._last_flush >= self._interval:
             self._mcap.flush()  # closes the chunk and flushes the file to the OS
+            self._flushed = (self._samples_written, self._last[1])
             self._last_flush = time.monotonic()
+
+    def _count_whole_chunks(self) -> None:
+        """A chunk that reached the file whole is readable even if the flush after it (or
+        its message index) failed: count it, so a reported loss is the real gap."""
+        with contextlib.suppress(OSError):
+            size = os.fstat(self._file.fileno()).st_size
+            for end, counts, log_time in reversed(self._mcap.unflushed):
+                if end <= size:
+                    self._flushed = (counts[self._sample_ch], log_time)
+                    break
 
     def _log_drops(self) -> None:
         dropped = self._dropped
