@@ -5,7 +5,9 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 CONFIG ?= config/sim.toml
 
-.PHONY: run test test-slow bench lint clean
+INSTALL_PYTHON ?= /usr/bin/python3
+
+.PHONY: run test test-slow bench lint clean install systemd-deps test-systemd
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null || { echo "need $(PYTHON) (apt-get install python3 python3-venv)"; exit 1; }
@@ -19,7 +21,7 @@ run: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest -q -m "not slow"
+	$(BIN)/python -m pytest -q -m "not slow and not systemd"
 
 test-slow: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow
@@ -32,3 +34,19 @@ lint: $(STAMP)
 
 clean:
 	rm -rf $(VENV) build *.egg-info
+
+# The hardened service: system user, /opt/leveler venv, /etc/leveler/leveler.toml (kept if
+# present), /etc/systemd/system/leveler.service. Needs root; safe to repeat.
+install:
+	$(INSTALL_PYTHON) -m leveler.install --python $(INSTALL_PYTHON)
+
+# systemd-analyze and systemd-nspawn: apt-installed only when missing and we are root.
+systemd-deps:
+	@if command -v systemd-analyze >/dev/null && command -v systemd-nspawn >/dev/null; then :; \
+	elif [ "$$(id -u)" -eq 0 ]; then \
+	  apt-get update -qq && apt-get install -y -qq systemd systemd-container; \
+	else echo "need systemd-analyze and systemd-nspawn: sudo apt-get install systemd systemd-container"; fi
+
+# The unit judged by systemd's own tools, then booted in a container (root; about a minute).
+test-systemd: $(STAMP) systemd-deps
+	$(BIN)/python -m pytest -q tests/test_systemd_unit.py tests/integration

@@ -6,6 +6,7 @@ import argparse
 import sys
 from collections.abc import Sequence
 
+from leveler.client import ClientError
 from leveler.config import ConfigError
 from leveler.durations import parse_duration
 from leveler.logreader import LogError
@@ -42,6 +43,99 @@ def _cmd_recover(args: argparse.Namespace) -> int:
     n = recover(args.log, args.out)
     print(f"recovered {n} messages from {args.log} into {args.out}")
     return 0
+
+
+def _cmd_control(args: argparse.Namespace) -> int:
+    from leveler.client import Client, format_status, run_watch
+
+    with Client(args.socket) as client:
+        if args.command == "status":
+            st = client.request("status")["status"]
+            if args.json:
+                import json
+
+                print(json.dumps(st))
+            else:
+                print(format_status(st))
+        elif args.command == "watch":
+            run_watch(client, args.rate, args.count)
+        elif args.command == "rotate":
+            print(f"logging to {client.request('rotate')['path']}")
+        else:
+            print(f"state: {client.request(args.command)['state']}")
+    return 0
+
+
+def _cmd_tune(args: argparse.Namespace) -> int:
+    from leveler.tunecmd import run_tune_command
+
+    return run_tune_command(args)
+
+
+def _add_socket(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--socket", default=None,
+                   help="control socket of the daemon (default: $LEVELER_SOCKET, then "
+                   "/run/leveler/control.sock, then your own runtime directory's)")
+
+
+def _add_control_commands(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    simple = {
+        "start": "close the loop (bumpless, from the voltage the piezo holds now)",
+        "stop": "open the loop: keep sampling and logging, hold the piezo where it is",
+        "reset": "leave the fault state after the cause is fixed (the loop stays open)",
+        "rotate": "close the current log file and start a new one",
+    }
+    for name, text in simple.items():
+        p = sub.add_parser(name, help=text, description=f"{text[0].upper()}{text[1:]}. Talks "
+                           "to the running daemon over its control socket; needs membership of "
+                           "the daemon's group (or root).")
+        _add_socket(p)
+        p.set_defaults(func=_cmd_control)
+    st = sub.add_parser("status", help="state, reading, piezo, gains, loop timing and log of "
+                        "the running daemon", description="Ask the running daemon how it is: "
+                        "state (idle, engaged, fault and why), the last reading and the tilt it "
+                        "means, piezo voltage, controller settings, loop period statistics and "
+                        "overruns, and the log file.")
+    st.add_argument("--json", action="store_true", help="print the status as one JSON object")
+    _add_socket(st)
+    st.set_defaults(func=_cmd_control)
+    w = sub.add_parser("watch", help="live view of the running loop: values and a small trend",
+                       description="Stream samples from the running daemon at a decimated rate "
+                       "and show them with a trend of the last 40 sensor readings. Ctrl-C ends "
+                       "it (the daemon carries on).")
+    w.add_argument("--rate", type=float, default=2.0, help="samples per second (default: 2)")
+    w.add_argument("--count", type=int, default=None, help="stop after this many samples")
+    _add_socket(w)
+    w.set_defaults(func=_cmd_control)
+    t = sub.add_parser(
+        "tune", help="change gains, setpoint, limits or slew live; or suggest gains",
+        description="Change controller settings of the running daemon. Values are checked "
+        "before they are applied; gain changes are bumpless (the piezo command does not jump). "
+        "--persist also writes them into the daemon's config file (atomically, comments kept). "
+        "With --suggest, propose gains from the configured plant model (python-control) and "
+        "print margins; --apply sends them.")
+    t.add_argument("--kp", type=float, help="proportional gain [V/m]")
+    t.add_argument("--ki", type=float, help="integral gain [V/(m s)]")
+    t.add_argument("--kd", type=float, help="derivative gain [V s/m]")
+    t.add_argument("--setpoint", type=float, help="setpoint of the sensor reading [m]")
+    t.add_argument("--min-v", type=float, help="lower output limit [V]")
+    t.add_argument("--max-v", type=float, help="upper output limit [V]")
+    t.add_argument("--slew", type=float, help="output slew limit [V/s]")
+    t.add_argument("--persist", action="store_true", help="also write the values to the "
+                   "daemon's config file")
+    t.add_argument("--suggest", action="store_true", help="propose gains from the plant model")
+    t.add_argument("--bandwidth", type=float, default=None,
+                   help="with --suggest: wanted unity-gain frequency [Hz] (default: the highest "
+                   "the margins allow)")
+    t.add_argument("--phase-margin", type=float, default=60.0,
+                   help="with --suggest: wanted phase margin [deg] (default: 60)")
+    t.add_argument("--plot", default=None, help="with --suggest: Bode/Nyquist plot (PNG)")
+    t.add_argument("--config", default=None, help="with --suggest: plant model config "
+                   "(default: the running daemon's, else config/sim.toml)")
+    t.add_argument("--apply", action="store_true", help="with --suggest: send the proposal to "
+                   "the daemon")
+    _add_socket(t)
+    t.set_defaults(func=_cmd_tune)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -107,6 +201,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("log", help="the damaged MCAP file (left untouched)")
     rec.add_argument("--out", required=True, help="where to write the recovered copy")
     rec.set_defaults(func=_cmd_recover)
+    _add_control_commands(sub)
     return parser
 
 
@@ -114,7 +209,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args))
-    except (ConfigError, LogError) as exc:
+    except (ConfigError, LogError, ClientError) as exc:
         print(f"leveler {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -1,100 +1,355 @@
 """`leveler run`: the foreground daemon on a real-time clock (what systemd starts).
 
-SIGINT and SIGTERM end the loop between cycles; whatever ends it, the actuator is made
-safe and the log is finished, so the last file is always complete and readable.
+The loop thread owns the drivers, the PID and the log. Everything else reaches it through
+`call` (control-socket verbs, run between cycles) or flags (signals), so no lock is ever
+taken on the hot path. SIGINT/SIGTERM end the loop between cycles; whatever ends it, the
+actuator is made safe and the log finished. SIGHUP reloads the config: a file that fails
+validation is rejected, logged, and the running config kept.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import faulthandler
+import logging
+import os
+import queue
 import signal
 import sys
+import threading
 import time
+from collections import deque
+from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
 from pathlib import Path
 from types import FrameType
+from typing import Any
 
 from leveler import __version__
 from leveler.clock import RealtimeClock
-from leveler.logwriter import LogWriter
-from leveler.loop import Loop
-from leveler.pid import PID
-from leveler.settings import Config, load_config
-from leveler.stand import open_stand
+from leveler.config import ConfigError
+from leveler.control import ControlServer, Peer, resolve_group
+from leveler.logrotate import RotatingLog
+from leveler.loop import ENGAGED, FAULT, Loop
+from leveler.notify import Notifier
+from leveler.persist import set_keys, write_atomic
+from leveler.pid import PID, PIDGains
+from leveler.protocol import ProtocolError, default_socket_path, tune_args
+from leveler.settings import ControllerConfig, load_config
+from leveler.stand import Stand, open_stand
+
+_log = logging.getLogger("leveler")
+CALL_TIMEOUT_S = 2.0
 
 
-def log_path(cfg: Config, now: datetime | None = None) -> Path:
-    """A new file per start, named by UTC start time so files sort in time order."""
-    now = now or datetime.now(UTC)
-    return Path(cfg.log.dir) / f"leveler-{now:%Y%m%dT%H%M%S}Z.mcap"
+class _Call:
+    """A function to run on the loop thread, with its outcome for the waiting caller."""
+
+    def __init__(self, fn: Callable[[float], Any]) -> None:
+        self.fn = fn
+        self.done = threading.Event()
+        self.result: Any = None
+        self.error: BaseException | None = None
 
 
-class _Stop:
-    """Set by SIGINT/SIGTERM; checked once per cycle."""
+class Daemon:
+    """One running leveler: config, drivers, loop, log, control socket, systemd link."""
 
-    def __init__(self) -> None:
-        self.reason = ""
+    def __init__(self, config_path: str | Path, duration_s: float | None = None) -> None:
+        self.config_path = Path(config_path)
+        self.cfg, text = load_config(self.config_path)
+        self.duration_s = duration_s
+        self.stop_reason = ""
+        self._reload_requested = False
+        self._calls: queue.SimpleQueue[_Call] = queue.SimpleQueue()
+        self._pending_events: deque[tuple[str, str, dict[str, Any]]] = deque()
+        self.notifier = Notifier()
+        self.started_mono = time.monotonic()
+        try:
+            self.gid = resolve_group(self.cfg.control.group)
+        except KeyError as exc:
+            raise ConfigError(f"{self.config_path}: {exc.args[0]}") from None
+        self.socket_path = Path(self.cfg.control.socket_path or default_socket_path())
+        self.stand: Stand = open_stand(self.cfg)
+        self.stand.connect()
+        metadata = {"config": text, "config_path": str(self.config_path.resolve()),
+                    "version": __version__, "started_utc": datetime.now(UTC).isoformat()}
+        lc = self.cfg.log
+        self.log = RotatingLog(Path(lc.dir), metadata=metadata, truth=self.stand.truth is not None,
+                               chunk_interval_s=lc.chunk_interval_s, compression=lc.compression,
+                               rotate_interval_s=lc.rotate_interval_s,
+                               rotate_bytes=lc.rotate_bytes, retry_interval_s=lc.retry_interval_s,
+                               on_fault=self._log_fault)
+        self.dt = 1.0 / self.cfg.loop.rate_hz
+        pid = PID(self.cfg.controller.pid_config(), initial_output_v=self.stand.actuator.safe_v)
+        self.loop = Loop(self.stand.sensor, self.stand.actuator, pid, self.dt, [self.log],
+                         self.stand.truth)
+        self.clock = RealtimeClock(self.dt)
+        self.server = ControlServer(self.socket_path, self, gid=self.gid,
+                                    max_clients=self.cfg.control.max_clients,
+                                    idle_timeout_s=self.cfg.control.idle_timeout_s)
 
-    def __call__(self, signum: int, frame: FrameType | None) -> None:
-        self.reason = signal.Signals(signum).name
+    # ---- called from other threads -------------------------------------------------
+    def call(self, fn: Callable[[float], Any], timeout_s: float = CALL_TIMEOUT_S) -> Any:
+        """Run fn(t) on the loop thread between cycles and return its result."""
+        c = _Call(fn)
+        self._calls.put(c)
+        if not c.done.wait(timeout_s):
+            raise ProtocolError(f"the control loop did not answer within {timeout_s:g} s "
+                                "(stalled or stopping)")
+        if c.error is not None:
+            raise c.error
+        return c.result
 
+    def note(self, kind: str, reason: str, **detail: Any) -> None:
+        """Queue an event for the log from any thread; the loop thread writes it."""
+        self._pending_events.append((kind, reason, detail))
 
-def status_line(loop: Loop, clock: RealtimeClock, cfg: Config, writer: LogWriter) -> str:
-    s = loop.last
-    if s is None:
-        return "no sample yet"
-    pend = cfg.plant.pendulum
-    tilt_rad = s.sensor_m / (pend.amplification * pend.sensor_arm_m)
-    st = clock.stats()
-    return (
-        f"t={s.t_s:9.1f} s  {s.state:<7}  sensor={s.sensor_m * 1e9:+9.2f} nm  "
-        f"tilt={tilt_rad * 1e9:+8.2f} nrad  piezo={s.applied_v:7.3f} V"
-        f"{' SAT' if s.saturated else ''}  period p50/p99/max="
-        f"{st['period_p50_s'] * 1e3:.2f}/{st['period_p99_s'] * 1e3:.2f}/"
-        f"{st['period_max_s'] * 1e3:.2f} ms  overruns={clock.overruns}  "
-        f"logged={writer.samples_written}"
-    )
+    def refused(self, peer: Peer, why: str) -> None:
+        _log.warning("control: refused pid %d uid %d: %s", peer.pid, peer.uid, why)
+        self.note("access", "refused", uid=peer.uid, gid=peer.gid, pid=peer.pid)
+
+    def _log_fault(self, message: str) -> None:
+        _log.error("log: %s", message)
+
+    def handle(self, req: dict[str, Any], peer: Peer) -> dict[str, Any]:
+        verb = req["verb"]
+        who = f"uid {peer.uid}"
+        if verb == "status":
+            return {"ok": True, "status": self.status()}
+        if verb == "start":
+            return {"ok": True, "state": self.call(lambda t: self._start(t, who))}
+        if verb == "stop":
+            return {"ok": True, "state": self.call(lambda t: self._stop(t, who))}
+        if verb == "reset":
+            return {"ok": True, "state": self.call(lambda t: self._reset(t, who))}
+        if verb == "rotate":
+            path = self.log.rotate(f"requested by {who}")  # thread-safe; keeps I/O off the loop
+            return {"ok": True, "path": str(path)}
+        if verb == "tune":
+            values, persist = tune_args(req)
+            new = self._validated(values)
+            self.call(lambda t: self._apply_controller(new, t, f"tune by {who}"))
+            if persist:
+                self._persist(values)
+            return {"ok": True, "controller": dataclasses.asdict(new), "persisted": persist}
+        raise ProtocolError(f"verb {verb!r} is not served here")
+
+    def watch(self, req: dict[str, Any]) -> Iterator[dict[str, Any]]:
+        """Samples at a decimated rate (default 10 Hz) until the client leaves."""
+        rate = req.get("rate_hz", 10.0)
+        if isinstance(rate, bool) or not isinstance(rate, int | float) or not 0 < rate <= 1000:
+            raise ProtocolError(f"watch: rate_hz must be a number in (0, 1000], got {rate!r}")
+        period = max(1.0 / rate, self.dt)
+        last_seq = -1
+        while not self.stop_reason:
+            s = self.loop.last
+            if s is not None and s.seq != last_seq:
+                last_seq = s.seq
+                yield {"sample": s}
+            time.sleep(period)
+
+    def status(self) -> dict[str, Any]:
+        s = self.loop.last
+        pend = self.cfg.plant.pendulum
+        stats = self.clock.stats()
+        return {
+            "version": __version__,
+            "pid": os.getpid(),
+            "config_path": str(self.config_path),
+            "uptime_s": round(time.monotonic() - self.started_mono, 3),
+            "state": self.loop.state,
+            "fault_reason": self.loop.fault_reason,
+            "sample": s,
+            "tilt_rad": (s.sensor_m / (pend.amplification * pend.sensor_arm_m)
+                         if s is not None else None),
+            "controller": dataclasses.asdict(self.cfg.controller),
+            "loop": {"rate_hz": self.cfg.loop.rate_hz, "cycles": self.clock.cycles,
+                     "overruns": self.clock.overruns, **stats},
+            "log": {"path": str(self.log.path) if self.log.path else None,
+                    "samples_written": self.log.samples_written, "dropped": self.log.dropped,
+                    "healthy": self.log.healthy, "error": self.log.last_error},
+        }
+
+    # ---- run on the loop thread ----------------------------------------------------
+    def _start(self, t: float, who: str) -> str:
+        if self.loop.state == FAULT:
+            raise ProtocolError(f"in fault ({self.loop.fault_reason}); run `leveler reset` "
+                                "first")
+        self.loop.engage(t, f"start by {who}")
+        return self.loop.state
+
+    def _stop(self, t: float, who: str) -> str:
+        self.loop.disengage(t, f"stop by {who}")
+        return self.loop.state
+
+    def _reset(self, t: float, who: str) -> str:
+        if self.loop.state != FAULT:
+            return self.loop.state
+        try:
+            self.stand.close()
+            self.stand.connect()
+        except Exception as exc:
+            raise ProtocolError(f"reset failed, still in fault: reconnect: {exc}") from None
+        self.loop.reset(t, f"reset by {who}")
+        return self.loop.state
+
+    def _validated(self, values: dict[str, float]) -> ControllerConfig:
+        """The controller config with `values` applied, checked as a whole first."""
+        try:
+            new = dataclasses.replace(self.cfg.controller, **values)
+            new.pid_config()
+        except (ValueError, ConfigError) as exc:
+            raise ProtocolError(f"tune: {exc}") from None
+        return new
+
+    def _apply_controller(self, new: ControllerConfig, t: float, reason: str) -> None:
+        """Apply gains, setpoint, limits and slew bumplessly; log what changed."""
+        old = self.cfg.controller
+        pid = self.loop.pid
+        changed = {k: [getattr(old, k), getattr(new, k)] for k in dataclasses.asdict(new)
+                   if getattr(old, k) != getattr(new, k)}
+        if (new.output_min_v, new.output_max_v) != (old.output_min_v, old.output_max_v):
+            pid.set_limits(new.output_min_v, new.output_max_v)
+        if new.slew_v_per_s != old.slew_v_per_s:
+            pid.set_slew(new.slew_v_per_s)
+        if new.setpoint_m != old.setpoint_m:
+            pid.set_setpoint(new.setpoint_m)
+        gains = PIDGains(new.kp_v_per_m, new.ki_v_per_m_s, new.kd_v_s_per_m)
+        if gains != PIDGains(old.kp_v_per_m, old.ki_v_per_m_s, old.kd_v_s_per_m):
+            pid.set_gains(gains)
+        self.cfg = dataclasses.replace(self.cfg, controller=new)
+        if changed:
+            self.loop.emit("tune", reason, t, **changed)
+
+    def _persist(self, values: dict[str, float]) -> None:
+        text = set_keys(self.config_path.read_text(), "controller", values)
+        try:
+            write_atomic(self.config_path, text, load_config)
+        except (OSError, ConfigError) as exc:
+            raise ProtocolError(f"tune applied, but not persisted: {exc}") from None
+        self.note("persist", "controller written to config", path=str(self.config_path),
+                  **values)
+
+    def _reload(self, t: float) -> None:
+        self._reload_requested = False
+        try:
+            new, _ = load_config(self.config_path)
+        except ConfigError as exc:
+            _log.error("reload rejected, keeping the running config: %s", exc)
+            self.loop.emit("reload", f"rejected: {exc}", t)
+            return
+        live_loop = dataclasses.replace(new.loop, status_interval_s=self.cfg.loop.status_interval_s)
+        restart = ["loop"] if live_loop != self.cfg.loop else []
+        restart += [name for name in ("log", "control", "sensor", "actuator", "plant", "sim")
+                    if getattr(new, name) != getattr(self.cfg, name)]
+        self._apply_controller(new.controller, t, "reload (SIGHUP)")
+        self.cfg = dataclasses.replace(self.cfg, loop=dataclasses.replace(
+            self.cfg.loop, status_interval_s=new.loop.status_interval_s))
+        self.loop.emit("reload", "applied", t, needs_restart=restart)
+        if restart:
+            _log.warning("reload: changes to [%s] take effect at the next restart",
+                         "], [".join(restart))
+
+    def _drain(self, t: float) -> None:
+        while self._pending_events:
+            kind, reason, detail = self._pending_events.popleft()
+            self.loop.emit(kind, reason, t, **detail)
+        while True:
+            try:
+                c = self._calls.get_nowait()
+            except queue.Empty:
+                break
+            try:
+                c.result = c.fn(t)
+            except BaseException as exc:
+                c.error = exc
+            c.done.set()
+
+    def status_line(self) -> str:
+        s = self.loop.last
+        if s is None:
+            return "no sample yet"
+        pend = self.cfg.plant.pendulum
+        tilt_rad = s.sensor_m / (pend.amplification * pend.sensor_arm_m)
+        st = self.clock.stats()
+        log = "" if self.log.healthy else f"  LOG FAULT: {self.log.last_error}"
+        return (
+            f"t={s.t_s:9.1f} s  {s.state:<7}  sensor={s.sensor_m * 1e9:+9.2f} nm  "
+            f"tilt={tilt_rad * 1e9:+8.2f} nrad  piezo={s.applied_v:7.3f} V"
+            f"{' SAT' if s.saturated else ''}  period p50/p99/max="
+            f"{st['period_p50_s'] * 1e3:.2f}/{st['period_p99_s'] * 1e3:.2f}/"
+            f"{st['period_max_s'] * 1e3:.2f} ms  overruns={self.clock.overruns}  "
+            f"logged={self.log.samples_written}{log}"
+        )
+
+    def run(self) -> int:
+        """Serve until signalled (or for duration_s); returns the process exit code."""
+        handlers = {signal.SIGINT: self._on_stop, signal.SIGTERM: self._on_stop,
+                    signal.SIGHUP: self._on_hup}
+        previous = {sig: signal.signal(sig, h) for sig, h in handlers.items()}
+        loop, clock, cfg = self.loop, self.clock, self.cfg
+        print(f"leveler {__version__}: {cfg.sensor.backend} backend at {cfg.loop.rate_hz:g} Hz, "
+              f"logging to {self.log.path}, control socket {self.socket_path}", flush=True)
+        wd = self.notifier.watchdog_interval_s
+        next_wd = time.monotonic()
+        next_status = time.monotonic() + cfg.loop.status_interval_s
+        good, ready = 0, False
+        t = 0.0
+        try:
+            self.server.start()
+            t = clock.tick()
+            loop.emit("start", "daemon started", t, config=str(self.config_path),
+                      socket=str(self.socket_path))
+            loop.cycle(t, clock.wall_ns(t))
+            if self.cfg.loop.engage_on_start:
+                loop.engage(t, "engage_on_start")
+            while not self.stop_reason and (self.duration_s is None or t < self.duration_s):
+                t = clock.tick()
+                self._drain(t)
+                if self._reload_requested:
+                    self._reload(t)
+                s = loop.cycle(t, clock.wall_ns(t))
+                now = time.monotonic()
+                if wd is not None and now >= next_wd:
+                    self.notifier.watchdog()  # from this thread: a stalled loop stops it
+                    next_wd = now + wd
+                if not ready:
+                    good = good + 1 if s.status == 0 else 0
+                    if good >= self.cfg.loop.ready_samples:
+                        ready = True
+                        self.notifier.ready(self.status_line())
+                if now >= next_status:
+                    next_status += self.cfg.loop.status_interval_s
+                    line = self.status_line()
+                    print(line, flush=True)
+                    self.notifier.status(line)
+        finally:
+            self.notifier.stopping()
+            self.stand.actuator.make_safe()
+            reason = self.stop_reason or "finished"
+            if loop.state == ENGAGED:
+                loop.disengage(t, reason)
+            loop.emit("stop", reason, t, overruns=clock.overruns)
+            self.server.close()
+            self.log.close()
+            self.stand.close()
+            self.notifier.close()
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+        print(f"stopped ({self.stop_reason or 'finished'}): {self.log.samples_written} samples "
+              f"in {', '.join(str(p) for p in self.log.files)}", file=sys.stderr, flush=True)
+        return 0
+
+    def _on_stop(self, signum: int, frame: FrameType | None) -> None:
+        self.stop_reason = signal.Signals(signum).name
+
+    def _on_hup(self, signum: int, frame: FrameType | None) -> None:
+        self._reload_requested = True
 
 
 def run_daemon(config_path: str | Path, duration_s: float | None = None) -> int:
-    """Run until signalled (or for duration_s); returns the process exit code."""
-    cfg, text = load_config(config_path)
-    stop = _Stop()
-    previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
-    stand = open_stand(cfg)
-    stand.connect()
-    path = log_path(cfg)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    metadata = {"config": text, "config_path": str(Path(config_path).resolve()),
-                "version": __version__, "started_utc": datetime.now(UTC).isoformat()}
-    writer = LogWriter(path, metadata=metadata, chunk_interval_s=cfg.log.chunk_interval_s,
-                       compression=cfg.log.compression, truth=stand.truth is not None)
-    dt = 1.0 / cfg.loop.rate_hz
-    pid = PID(cfg.controller.pid_config(), initial_output_v=stand.actuator.safe_v)
-    loop = Loop(stand.sensor, stand.actuator, pid, dt, [writer], stand.truth)
-    clock = RealtimeClock(dt)
-    print(f"leveler {__version__}: {cfg.sensor.backend} backend at {cfg.loop.rate_hz:g} Hz, "
-          f"logging to {path}", flush=True)
-    next_status = time.monotonic() + cfg.loop.status_interval_s
-    t = 0.0
-    try:
-        t = clock.tick()
-        loop.emit("start", "daemon started", t, config=str(config_path))
-        loop.cycle(t, clock.wall_ns(t))
-        if cfg.loop.engage_on_start:
-            loop.engage(t, "engage_on_start")
-        while not stop.reason and (duration_s is None or t < duration_s):
-            t = clock.tick()
-            loop.cycle(t, clock.wall_ns(t))
-            if time.monotonic() >= next_status:
-                next_status += cfg.loop.status_interval_s
-                print(status_line(loop, clock, cfg, writer), flush=True)
-    finally:
-        stand.actuator.make_safe()
-        loop.emit("stop", stop.reason or "finished", t, overruns=clock.overruns)
-        writer.close()
-        stand.close()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-    print(f"stopped ({stop.reason or 'finished'}): {writer.samples_written} samples in {path}",
-          file=sys.stderr, flush=True)
-    return 0
+    faulthandler.enable()  # a watchdog SIGABRT then leaves every thread's stack in the journal
+    logging.basicConfig(level=logging.INFO, stream=sys.stderr,
+                        format="%(levelname)s %(name)s: %(message)s")
+    return Daemon(config_path, duration_s).run()

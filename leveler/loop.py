@@ -40,6 +40,7 @@ class Loop:
         self.sinks = sinks
         self._truth = truth
         self.state = IDLE
+        self.fault_reason = ""
         self.seq = 0
         self.held_v = actuator.safe_v
         self.last: Sample | None = None
@@ -53,7 +54,7 @@ class Loop:
 
     def engage(self, t_s: float, reason: str = "requested") -> None:
         """Close the loop bumplessly from the voltage the actuator holds now."""
-        if self.state == ENGAGED:
+        if self.state != IDLE:
             return
         measurement = self.last.sensor_m if self.last is not None else 0.0
         self.pid.engage(measurement, self.held_v)
@@ -62,6 +63,13 @@ class Loop:
     def disengage(self, t_s: float, reason: str = "requested") -> None:
         """Open the loop; the actuator holds its last voltage."""
         if self.state == ENGAGED:
+            self._transition(IDLE, reason, t_s)
+
+    def reset(self, t_s: float, reason: str = "requested") -> None:
+        """Leave `fault` for `idle`; the actuator stays at its safe voltage until engaged."""
+        if self.state == FAULT:
+            self.held_v = self.actuator.safe_v
+            self.fault_reason = ""
             self._transition(IDLE, reason, t_s)
 
     def _transition(self, new: str, reason: str, t_s: float) -> None:
@@ -75,6 +83,7 @@ class Loop:
         except DriverError as exc:
             reason = f"{reason}; make_safe failed too: {exc}"
         if self.state != FAULT:
+            self.fault_reason = reason
             self._transition(FAULT, reason, t_s)
 
     def cycle(self, t_s: float, wall_ns: int) -> Sample:

@@ -17,6 +17,17 @@ class LoopConfig:
     rate_hz: float = positive(10.0)
     status_interval_s: float = positive(5.0)
     engage_on_start: bool = True
+    ready_samples: int = field(default=10, metadata={"ge": 1})
+
+
+@dataclass(frozen=True, slots=True)
+class ControlConfig:
+    """The control socket: where it lives and who may use it."""
+
+    socket_path: str = ""
+    group: str = ""
+    max_clients: int = field(default=16, metadata={"ge": 1, "le": 1024})
+    idle_timeout_s: float = positive(60.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -24,6 +35,9 @@ class LogConfig:
     dir: str = "logs"
     chunk_interval_s: float = positive(1.0)
     compression: Literal["zstd", "lz4", "none"] = "zstd"
+    rotate_interval_s: float = positive(86400.0)
+    rotate_bytes: int = field(default=1 << 30, metadata={"ge": 1 << 16})
+    retry_interval_s: float = positive(5.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -77,12 +91,16 @@ class SimConfig:
     """Simulation-only settings (the plant itself is [plant])."""
 
     seed: int = field(default=0, metadata={"ge": 0})
+    hang_at_s: float = non_negative(math.inf, allow_inf=True)
+    hang_for_s: float = non_negative(0.0)
+    fail_at_s: float = non_negative(math.inf, allow_inf=True)
 
 
 @dataclass(frozen=True, slots=True)
 class Config:
     loop: LoopConfig = field(default_factory=LoopConfig)
     log: LogConfig = field(default_factory=LogConfig)
+    control: ControlConfig = field(default_factory=ControlConfig)
     controller: ControllerConfig = field(default_factory=ControllerConfig)
     sensor: SensorConfig = field(default_factory=SensorConfig)
     actuator: ActuatorConfig = field(default_factory=ActuatorConfig)

@@ -6,6 +6,9 @@ same class serves the real-time daemon and virtual-time simulation.
 
 from __future__ import annotations
 
+import math
+import time
+
 from leveler.drivers.base import DriverError, Reading, Status
 from leveler.records import Truth
 from leveler.sim.plant import Plant
@@ -14,7 +17,10 @@ from leveler.sim.plant import Plant
 class SimulatedStand:
     """Sensor + actuator backed by `leveler.sim.plant.Plant`."""
 
-    def __init__(self, plant: Plant, safe_v: float) -> None:
+    def __init__(self, plant: Plant, safe_v: float, *, hang_at_s: float = math.inf,
+                 hang_for_s: float = 0.0, fail_at_s: float = math.inf) -> None:
+        """Fault injection: a read stalls for hang_for_s at hang_at_s (a hung device, for
+        the watchdog), and fails once at fail_at_s (a pulled cable, for fault handling)."""
         pz = plant.params.piezo
         if not pz.min_v <= safe_v <= pz.max_v:
             raise DriverError(
@@ -22,6 +28,9 @@ class SimulatedStand:
         self.plant = plant
         self._safe_v = safe_v
         self._connected = False
+        self._hang_at_s = hang_at_s
+        self._hang_for_s = hang_for_s
+        self._fail_at_s = fail_at_s
 
     @property
     def safe_v(self) -> float:
@@ -36,6 +45,12 @@ class SimulatedStand:
     def read(self, t_s: float) -> Reading:
         if not self._connected:
             raise DriverError("simulated sensor read before connect()")
+        if t_s >= self._hang_at_s:
+            self._hang_at_s = math.inf
+            time.sleep(self._hang_for_s)  # the device stops answering, once
+        if t_s >= self._fail_at_s:
+            self._fail_at_s = math.inf
+            raise DriverError(f"injected sensor fault at t = {t_s:.3f} s ([sim] fail_at_s)")
         plant = self.plant
         target = round(t_s / plant.dt_s)
         while plant.n < target:

@@ -1,0 +1,154 @@
+"""The client side of the control socket, and the CLI verbs built on it."""
+
+from __future__ import annotations
+
+import contextlib
+import socket
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import orjson
+
+from leveler.protocol import MAX_LINE_BYTES, VERSION, client_socket_candidates
+
+
+class ClientError(Exception):
+    """No daemon, no access, or the daemon said no; the message says which."""
+
+
+def _may_exist(path: Path) -> bool:
+    """True if the socket is there, or hidden from us by permissions (connect will say)."""
+    try:
+        return path.exists()
+    except PermissionError:
+        return True
+
+
+class Client:
+    """One connection to a running daemon."""
+
+    def __init__(self, path: str | Path | None = None, timeout_s: float = 5.0) -> None:
+        candidates = [Path(path)] if path else client_socket_candidates()
+        found = next((p for p in candidates if _may_exist(p)), None)
+        if found is None:
+            tried = ", ".join(str(p) for p in candidates)
+            raise ClientError(f"no leveler daemon is running (no control socket at {tried}); "
+                              "start one with `systemctl start leveler` or "
+                              "`leveler run --config FILE`")
+        self.path = found
+        self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        self._sock.settimeout(timeout_s)
+        try:
+            self._sock.connect(str(found))
+        except PermissionError:
+            self._sock.close()
+            raise ClientError(f"access denied to {found}: the daemon's group may use it; "
+                              f"ask to be added (`ls -l {found}` shows which)") from None
+        except (ConnectionRefusedError, FileNotFoundError):
+            self._sock.close()
+            raise ClientError(f"no daemon is listening on {found} (left behind by one that "
+                              "stopped?)") from None
+        self._reader = self._sock.makefile("rb")
+
+    def close(self) -> None:
+        with contextlib.suppress(OSError):
+            self._reader.close()
+            self._sock.close()
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _read(self) -> dict[str, Any]:
+        try:
+            line = self._reader.readline(MAX_LINE_BYTES * 16)
+        except TimeoutError:
+            raise ClientError(f"the daemon on {self.path} did not answer in time") from None
+        if not line:
+            raise ClientError(f"the daemon on {self.path} closed the connection")
+        reply = orjson.loads(line)
+        if not reply.get("ok", False):
+            raise ClientError(reply.get("error", "request refused"))
+        return reply
+
+    def request(self, verb: str, **args: Any) -> dict[str, Any]:
+        """Send one request and return the daemon's (successful) reply."""
+        try:
+            self._sock.sendall(orjson.dumps({"v": VERSION, "verb": verb, **args}) + b"\n")
+        except OSError as exc:
+            raise ClientError(f"sending to {self.path} failed: {exc}") from None
+        return self._read()
+
+    def watch(self, rate_hz: float) -> Iterator[dict[str, Any]]:
+        """Samples streamed by the daemon, as dicts, until it stops or we do."""
+        self.request("watch", rate_hz=rate_hz)
+        self._sock.settimeout(None)
+        while True:
+            line = self._reader.readline(MAX_LINE_BYTES)
+            if not line:
+                return
+            yield orjson.loads(line)["sample"]
+
+
+_BARS = " ▁▂▃▄▅▆▇█"
+
+
+def sparkline(values: list[float]) -> str:
+    """A small trend: one block character per value, scaled to the window's range."""
+    if not values:
+        return ""
+    lo, hi = min(values), max(values)
+    span = hi - lo or 1.0
+    return "".join(_BARS[round((v - lo) / span * (len(_BARS) - 1))] for v in values)
+
+
+def format_status(st: dict[str, Any]) -> str:
+    s = st.get("sample") or {}
+    c, lp, log = st["controller"], st["loop"], st["log"]
+    lines = [
+        f"leveler {st['version']} (pid {st['pid']}), up {st['uptime_s'] / 60:.1f} min, "
+        f"config {st['config_path']}",
+        f"state       {st['state']}" + (f"  ({st['fault_reason']})" if st["fault_reason"] else ""),
+    ]
+    if s:
+        lines += [
+            f"sensor      {s['sensor_m'] * 1e9:+.2f} nm   (tilt {st['tilt_rad'] * 1e9:+.2f} nrad)"
+            if s.get("sensor_m") is not None else "sensor      no valid reading",
+            f"piezo       {s['applied_v']:.3f} V applied, {s['command_v']:.3f} V commanded"
+            + ("  SATURATED" if s["saturated"] else ""),
+        ]
+    lines += [
+        f"controller  kp {c['kp_v_per_m']:.4g} V/m  ki {c['ki_v_per_m_s']:.4g} V/(m s)  "
+        f"kd {c['kd_v_s_per_m']:.4g} V s/m  setpoint {c['setpoint_m']:.4g} m  "
+        f"limits {c['output_min_v']:g}..{c['output_max_v']:g} V  slew {c['slew_v_per_s']:g} V/s",
+        f"loop        {lp['rate_hz']:g} Hz, {lp['cycles']} cycles, period p50/p99/max "
+        f"{lp['period_p50_s'] * 1e3:.2f}/{lp['period_p99_s'] * 1e3:.2f}/"
+        f"{lp['period_max_s'] * 1e3:.2f} ms, overruns {lp['overruns']}",
+        f"log         {log['path']}, {log['samples_written']} samples, "
+        + ("healthy" if log["healthy"] else f"FAULT: {log['error']}")
+        + (f", {log['dropped']} dropped" if log["dropped"] else ""),
+    ]
+    return "\n".join(lines)
+
+
+def run_watch(client: Client, rate_hz: float, count: int | None) -> None:
+    """Print samples as they come: values and a trend of the last 40 sensor readings."""
+    tty = sys.stdout.isatty()
+    trend: list[float] = []
+    for n, s in enumerate(client.watch(rate_hz), start=1):
+        if s["sensor_m"] is not None:
+            trend = [*trend[-39:], s["sensor_m"]]
+        sensor = (f"{s['sensor_m'] * 1e9:+9.2f} nm" if s["sensor_m"] is not None
+                  else "   (no reading)")
+        line = (f"t={s['t_s']:10.2f} s  {s['state']:<7}  sensor={sensor}  "
+                f"piezo={s['applied_v']:8.3f} V  {sparkline(trend)}")
+        sys.stdout.write(f"\r{line}\033[K" if tty else f"{line}\n")
+        sys.stdout.flush()
+        if count is not None and n >= count:
+            break
+    if tty:
+        sys.stdout.write("\n")

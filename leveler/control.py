@@ -1,0 +1,220 @@
+"""The control socket server: transport and access control, nothing about leveling.
+
+A Unix stream socket, mode 0660 and owned by the configured group; every connection's
+peer credentials (SO_PEERCRED) are checked as well, because a file mode is easy to loosen
+by accident. One thread per connection (bounded by max_clients) reads line-delimited JSON
+requests and hands them to a `Handler`; a malformed request gets an error line back and the
+daemon carries on.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import grp
+import logging
+import os
+import socket
+import struct
+import threading
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+from leveler.protocol import MAX_LINE_BYTES, ProtocolError, encode, parse_request
+from leveler.rt import demote_thread
+
+_log = logging.getLogger(__name__)
+_UCRED = struct.Struct("3i")
+
+
+@dataclass(frozen=True)
+class Peer:
+    pid: int
+    uid: int
+    gid: int
+
+
+class Handler(Protocol):
+    def handle(self, req: dict[str, Any], peer: Peer) -> dict[str, Any]: ...
+
+    def watch(self, req: dict[str, Any]) -> Iterator[dict[str, Any]]: ...
+
+    def refused(self, peer: Peer, why: str) -> None: ...
+
+
+def peer_of(conn: socket.socket) -> Peer:
+    pid, uid, gid = _UCRED.unpack(
+        conn.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, _UCRED.size))
+    return Peer(pid, uid, gid)
+
+
+SO_PEERGROUPS = getattr(socket, "SO_PEERGROUPS", 59)  # Linux >= 4.13; not named in 3.11
+
+
+def peer_groups(conn: socket.socket) -> set[int]:
+    """The peer's supplementary groups as the kernel saw them at connect().
+
+    From the socket, not /proc/PID/status: the service runs with ProtectProc=invisible,
+    which hides other users' processes.
+    """
+    size = 4 * 64
+    while True:
+        try:
+            raw = conn.getsockopt(socket.SOL_SOCKET, SO_PEERGROUPS, size)
+        except OSError as exc:
+            if exc.errno == errno.ERANGE and size < 4 * 65536:
+                size *= 4
+                continue
+            return set()
+        return set(struct.unpack(f"{len(raw) // 4}I", raw))
+
+
+def resolve_group(name: str) -> int:
+    """gid of `name`, or the daemon's own group for ''; KeyError names an unknown group."""
+    if not name:
+        return os.getegid()
+    try:
+        return grp.getgrnam(name).gr_gid
+    except KeyError:
+        raise KeyError(f"control.group: no group named {name!r} on this machine") from None
+
+
+def _linger(conn: socket.socket) -> None:
+    """Let a refused client finish sending before we close, so it reads our answer
+    instead of failing its send with EPIPE."""
+    conn.shutdown(socket.SHUT_WR)
+    conn.settimeout(1.0)
+    with contextlib.suppress(OSError):
+        while conn.recv(65536):
+            pass
+
+
+class ControlServer:
+    """Listens on `path`; serves until close()."""
+
+    def __init__(self, path: Path, handler: Handler, *, gid: int, max_clients: int = 16,
+                 idle_timeout_s: float = 60.0) -> None:
+        self.path = path
+        self._handler = handler
+        self._gid = gid
+        self._uid = os.geteuid()
+        self._slots = threading.BoundedSemaphore(max_clients)
+        self._idle = idle_timeout_s
+        self._sock: socket.socket | None = None
+        self._thread: threading.Thread | None = None
+        self._closing = threading.Event()
+
+    def allowed(self, peer: Peer, conn: socket.socket) -> bool:
+        if peer.uid in (0, self._uid) or peer.gid == self._gid:
+            return True
+        return self._gid in peer_groups(conn)
+
+    def start(self) -> None:
+        """Bind (replacing a stale socket, refusing a live one) and start accepting."""
+        self.path.parent.mkdir(parents=True, exist_ok=True, mode=0o750)
+        if self.path.exists() or self.path.is_symlink():
+            probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            try:
+                probe.connect(str(self.path))
+            except OSError:
+                self.path.unlink()  # left behind by a daemon that died
+            else:
+                raise RuntimeError(f"another leveler daemon is listening on {self.path}")
+            finally:
+                probe.close()
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_CLOEXEC)
+        old = os.umask(0o117)  # the socket is born 0660: no window with wider access
+        try:
+            sock.bind(str(self.path))
+        finally:
+            os.umask(old)
+        os.chmod(self.path, 0o660)
+        if self._gid != os.getegid():
+            os.chown(self.path, -1, self._gid)
+        sock.listen(16)
+        self._sock = sock
+        self._thread = threading.Thread(target=self._accept, name="control", daemon=True)
+        self._thread.start()
+
+    def close(self) -> None:
+        self._closing.set()
+        if self._sock is not None:
+            with contextlib.suppress(OSError):
+                self._sock.shutdown(socket.SHUT_RDWR)
+            self._sock.close()
+            self._sock = None
+        with contextlib.suppress(FileNotFoundError):
+            self.path.unlink()
+        if self._thread is not None:
+            self._thread.join(timeout=2)
+
+    def _accept(self) -> None:
+        assert self._sock is not None
+        demote_thread()  # client threads are started from here and inherit this
+        while not self._closing.is_set():
+            try:
+                conn, _ = self._sock.accept()
+            except OSError:
+                return
+            if not self._slots.acquire(blocking=False):
+                with contextlib.suppress(OSError):
+                    conn.sendall(encode({"ok": False, "error": "too many clients; try later"}))
+                conn.close()
+                continue
+            threading.Thread(target=self._serve, args=(conn,), name="control-client",
+                             daemon=True).start()
+
+    def _serve(self, conn: socket.socket) -> None:
+        try:
+            with conn:
+                peer = peer_of(conn)
+                if not self.allowed(peer, conn):
+                    why = (f"access denied: uid {peer.uid} is not root, the daemon's user or "
+                           f"a member of group {self._gid}")
+                    self._handler.refused(peer, why)
+                    conn.sendall(encode({"ok": False, "error": why}))
+                    _linger(conn)
+                    return
+                conn.settimeout(self._idle)
+                reader = conn.makefile("rb")
+                while not self._closing.is_set():
+                    line = reader.readline(MAX_LINE_BYTES + 1)
+                    if not line:
+                        return
+                    if len(line) > MAX_LINE_BYTES:
+                        conn.sendall(encode({"ok": False,
+                                             "error": f"request longer than {MAX_LINE_BYTES} "
+                                                      "bytes; closing the connection"}))
+                        return
+                    if not line.strip():
+                        continue
+                    if not self._answer(conn, line, peer):
+                        return
+        except (OSError, TimeoutError):
+            return  # client went away or stalled past the idle timeout
+        finally:
+            self._slots.release()
+
+    def _answer(self, conn: socket.socket, line: bytes, peer: Peer) -> bool:
+        """Serve one request; False ends the connection (after a watch)."""
+        try:
+            req = parse_request(line)
+            if req["verb"] == "watch":
+                conn.sendall(encode({"ok": True, "watching": True}))
+                conn.settimeout(None)
+                for item in self._handler.watch(req):
+                    if self._closing.is_set():
+                        break
+                    conn.sendall(encode(item))
+                return False
+            reply = self._handler.handle(req, peer)
+        except ProtocolError as exc:
+            reply = {"ok": False, "error": str(exc)}
+        except Exception as exc:  # a bug in a verb must not kill the daemon: report it
+            _log.exception("control request failed")
+            reply = {"ok": False, "error": f"internal error: {type(exc).__name__}: {exc}"}
+        conn.sendall(encode(reply))
+        return True
+

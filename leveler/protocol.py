@@ -1,0 +1,117 @@
+"""The control protocol: line-delimited JSON over a Unix socket, versioned.
+
+Request:  {"v": 1, "verb": "status"} (plus the verb's arguments), one per line.
+Response: {"v": 1, "ok": true, ...} or {"v": 1, "ok": false, "error": "what was wrong"}.
+`watch` answers with one response and then a line per streamed sample.
+This module holds what client and server share: the version, the limits, the socket's
+default place and the checks on a request's shape.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import orjson
+
+VERSION = 1
+MAX_LINE_BYTES = 64 * 1024
+VERBS = ("status", "start", "stop", "tune", "watch", "rotate", "reset")
+
+#: tune arguments: config key -> lower bound (inclusive) or None
+TUNE_KEYS: dict[str, float | None] = {
+    "kp_v_per_m": 0.0,
+    "ki_v_per_m_s": 0.0,
+    "kd_v_s_per_m": 0.0,
+    "setpoint_m": None,
+    "output_min_v": None,
+    "output_max_v": None,
+    "slew_v_per_s": None,
+}
+
+
+class ProtocolError(ValueError):
+    """A request the daemon will not act on; the message goes back to the client."""
+
+
+def default_socket_path(env: dict[str, str] | None = None, uid: int | None = None) -> Path:
+    """Where the daemon listens when the config does not say.
+
+    Under systemd RuntimeDirectory=leveler gives $RUNTIME_DIRECTORY; root without systemd
+    uses /run/leveler; anyone else their own runtime directory.
+    """
+    env = dict(os.environ) if env is None else env
+    uid = os.getuid() if uid is None else uid
+    if env.get("RUNTIME_DIRECTORY"):
+        return Path(env["RUNTIME_DIRECTORY"].split(":")[0]) / "control.sock"
+    if uid == 0:
+        return Path("/run/leveler/control.sock")
+    if env.get("XDG_RUNTIME_DIR"):
+        return Path(env["XDG_RUNTIME_DIR"]) / "leveler" / "control.sock"
+    return Path(f"/tmp/leveler-{uid}/control.sock")
+
+
+def client_socket_candidates(env: dict[str, str] | None = None) -> list[Path]:
+    """Where a client looks, in order: $LEVELER_SOCKET, the service's, then a user daemon's."""
+    env = dict(os.environ) if env is None else env
+    out = [Path(env["LEVELER_SOCKET"])] if env.get("LEVELER_SOCKET") else []
+    out.append(Path("/run/leveler/control.sock"))
+    own = default_socket_path(env)
+    if own not in out:
+        out.append(own)
+    return out
+
+
+def parse_request(line: bytes) -> dict[str, Any]:
+    """Decode and check one request line; raises ProtocolError naming the problem."""
+    if len(line) > MAX_LINE_BYTES:
+        raise ProtocolError(f"request longer than {MAX_LINE_BYTES} bytes")
+    try:
+        req = orjson.loads(line)  # strict JSON: NaN and Infinity are syntax errors here
+    except orjson.JSONDecodeError as exc:
+        raise ProtocolError(f"not valid JSON: {exc}") from None
+    if not isinstance(req, dict):
+        raise ProtocolError("request must be a JSON object")
+    version = req.get("v", VERSION)
+    if version != VERSION:
+        raise ProtocolError(f"protocol version {version!r} not supported (this daemon speaks "
+                            f"{VERSION})")
+    verb = req.get("verb")
+    if verb not in VERBS:
+        raise ProtocolError(f"unknown verb {verb!r}; verbs: {', '.join(VERBS)}")
+    return req
+
+
+def tune_args(req: dict[str, Any]) -> tuple[dict[str, float], bool]:
+    """The numeric settings of a tune request, type- and sign-checked, and its persist flag."""
+    extra = sorted(set(req) - set(TUNE_KEYS) - {"v", "verb", "persist"})
+    if extra:
+        raise ProtocolError(f"tune: unknown key {extra[0]!r}; keys: {', '.join(TUNE_KEYS)}")
+    values: dict[str, float] = {}
+    for key, lower in TUNE_KEYS.items():
+        if key not in req:
+            continue
+        value = req[key]
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ProtocolError(f"tune: {key} must be a number, got {value!r}")
+        value = float(value)
+        if not math.isfinite(value):
+            raise ProtocolError(f"tune: {key} must be finite, got {value!r}")
+        if lower is not None and value < lower:
+            raise ProtocolError(f"tune: {key} must be >= {lower}, got {value!r}")
+        values[key] = value
+    if "slew_v_per_s" in values and values["slew_v_per_s"] <= 0:
+        raise ProtocolError(f"tune: slew_v_per_s must be > 0, got {values['slew_v_per_s']!r}")
+    persist = req.get("persist", False)
+    if not isinstance(persist, bool):
+        raise ProtocolError(f"tune: persist must be true or false, got {persist!r}")
+    if not values:
+        raise ProtocolError(f"tune: nothing to change; keys: {', '.join(TUNE_KEYS)}")
+    return values, persist
+
+
+def encode(obj: dict[str, Any]) -> bytes:
+    """One response line; non-finite floats become null rather than invalid JSON."""
+    return orjson.dumps({"v": VERSION, **obj}, option=orjson.OPT_SERIALIZE_NUMPY) + b"\n"

@@ -1,0 +1,100 @@
+"""Shared test harness: the daemon as a real subprocess with its own temporary directories."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@dataclass
+class DaemonProc:
+    proc: subprocess.Popen[str]
+    config: Path
+    socket: Path
+    logs: Path
+    lines: list[str] = field(default_factory=list)
+
+    def cli(self, *args: str, timeout: float = 30.0) -> subprocess.CompletedProcess[str]:
+        """Run `leveler ARGS --socket <this daemon>` as a separate process."""
+        return subprocess.run([sys.executable, "-m", "leveler.cli", *args, "--socket",
+                               str(self.socket)], capture_output=True, text=True,
+                              timeout=timeout)
+
+    def wait_status_lines(self, n: int, timeout_s: float = 30.0) -> list[str]:
+        """Read stdout until n more status lines have appeared."""
+        assert self.proc.stdout is not None
+        deadline = time.monotonic() + timeout_s
+        seen = 0
+        while seen < n:
+            assert time.monotonic() < deadline, f"no status lines in time; got {self.lines}"
+            line = self.proc.stdout.readline()
+            if not line:
+                err = self.proc.stderr.read() if self.proc.stderr else ""
+                raise AssertionError(f"daemon exited early: {err}")
+            self.lines.append(line)
+            seen += "period p50/p99/max" in line
+        return self.lines
+
+    def stop(self, sig: signal.Signals = signal.SIGTERM, timeout_s: float = 20.0) -> str:
+        """Signal the daemon and return its stderr after it exits."""
+        self.proc.send_signal(sig)
+        _, err = self.proc.communicate(timeout=timeout_s)
+        return err
+
+
+def daemon_config(tmp_path: Path, sock: Path, *, rate_hz: float = 50.0, sim: str = "",
+                  engage: bool = True) -> Path:
+    cfg = (REPO / "config" / "sim.toml").read_text()
+    cfg = cfg.replace("rate_hz = 10.0", f"rate_hz = {rate_hz}")
+    cfg = cfg.replace("status_interval_s = 5.0", "status_interval_s = 0.5")
+    cfg = cfg.replace('dir = "logs"', f'dir = "{tmp_path / "logs"}"')
+    if not engage:
+        cfg = cfg.replace("engage_on_start = true", "engage_on_start = false")
+    cfg = cfg.replace("[sim]\nseed = 1\n", f"[sim]\nseed = 1\n{sim}\n")
+    cfg += f'\n[control]\nsocket_path = "{sock}"\n'
+    path = tmp_path / "daemon.toml"
+    path.write_text(cfg)
+    return path
+
+
+@pytest.fixture
+def start_daemon(tmp_path: Path) -> Iterator:  # type: ignore[type-arg]
+    """Factory: start_daemon(rate_hz=..., sim='hang_at_s = 3.0', env={...}) -> DaemonProc."""
+    started: list[DaemonProc] = []
+    short = Path(tempfile.mkdtemp(prefix="lv", dir="/tmp"))  # AF_UNIX paths are short
+
+    def start(*, rate_hz: float = 50.0, sim: str = "", engage: bool = True,
+              env: dict[str, str] | None = None, wait_socket: bool = True) -> DaemonProc:
+        sock = short / f"c{len(started)}.sock"
+        config = daemon_config(tmp_path, sock, rate_hz=rate_hz, sim=sim, engage=engage)
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "leveler.cli", "run", "--config", str(config)],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+            env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})})
+        d = DaemonProc(proc, config, sock, tmp_path / "logs")
+        started.append(d)
+        deadline = time.monotonic() + 30
+        while wait_socket and not sock.exists():
+            assert proc.poll() is None, f"daemon died: {proc.communicate()[1]}"
+            assert time.monotonic() < deadline, "daemon socket never appeared"
+            time.sleep(0.05)
+        return d
+
+    yield start
+    for d in started:
+        if d.proc.poll() is None:
+            d.proc.kill()
+            d.proc.communicate(timeout=10)
+    shutil.rmtree(short, ignore_errors=True)

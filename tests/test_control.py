@@ -1,0 +1,259 @@
+"""The daemon driven only through its CLI and control socket, as a lab would."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from leveler.logreader import read_log
+from leveler.settings import load_config
+
+
+def raw(sock_path: Path, payload: bytes, timeout: float = 5.0) -> dict:  # type: ignore[type-arg]
+    """Send raw bytes on a fresh connection; return the first reply line."""
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+        s.settimeout(timeout)
+        s.connect(str(sock_path))
+        s.sendall(payload)
+        return json.loads(s.makefile("rb").readline())
+
+
+def status(d) -> dict:  # type: ignore[no-untyped-def,type-arg]
+    proc = d.cli("status", "--json")
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout)
+
+
+def test_status_start_stop_through_the_cli(start_daemon) -> None:  # type: ignore[no-untyped-def]
+    d = start_daemon(engage=False)
+    st = status(d)
+    assert st["state"] == "idle" and st["pid"] == d.proc.pid
+    human = d.cli("status")
+    assert "state       idle" in human.stdout and "period p50/p99/max" in human.stdout
+    assert d.cli("start").stdout.strip() == "state: engaged"
+    assert status(d)["state"] == "engaged"
+    assert d.cli("stop").stdout.strip() == "state: idle"
+    time.sleep(0.3)
+    held = status(d)["sample"]["applied_v"]
+    time.sleep(0.3)
+    assert status(d)["sample"]["applied_v"] == held  # idle holds the actuator
+    assert d.stop() is not None and d.proc.returncode == 0
+    (log,) = d.logs.glob("*.mcap")
+    events = [(e["kind"], e["reason"]) for e in read_log(log).events]
+    assert ("state", "start by uid 0") in events or any(
+        k == "state" and r.startswith("start by uid") for k, r in events)
+    assert any(k == "state" and r.startswith("stop by uid") for k, r in events)
+
+
+def test_tune_is_bumpless_validated_and_persisted(start_daemon) -> None:  # type: ignore[no-untyped-def]
+    d = start_daemon()
+    d.wait_status_lines(1)
+    assert d.cli("tune", "--slew", "1000").returncode == 0
+    # a setpoint step leaves a large error for the P term to act on
+    assert d.cli("tune", "--setpoint", "5e-8").returncode == 0
+    time.sleep(0.5)
+    proc = d.cli("tune", "--kp", "5e5")
+    assert proc.returncode == 0, proc.stderr
+    assert "kp_v_per_m = 500000" in proc.stdout
+    bad = d.cli("tune", "--min-v", "200")
+    assert bad.returncode == 2 and "output_min_v" in bad.stderr
+    neg = d.cli("tune", "--ki", "-5")
+    assert neg.returncode == 2 and "ki_v_per_m_s must be >= 0" in neg.stderr
+    assert status(d)["controller"]["kp_v_per_m"] == 5e5
+    persisted = d.cli("tune", "--ki", "6e5", "--persist")
+    assert persisted.returncode == 0 and "written to the config file" in persisted.stdout
+    cfg, text = load_config(d.config)
+    assert cfg.controller.ki_v_per_m_s == 6e5
+    assert "# integral-dominant" in text  # the lab's comments survive
+    time.sleep(0.3)
+    d.stop()
+    (log,) = d.logs.glob("*.mcap")
+    data = read_log(log)
+    tune = next(e for e in data.events if e["kind"] == "tune" and "kp_v_per_m" in e["detail"])
+    i = int(np.searchsorted(data.samples["t_s"], tune["t_s"]))
+    cmd = data.samples["command_v"]
+    jump = abs(cmd[i + 1] - cmd[i - 1])
+    naive = abs(5e5 * data.samples["error_m"][i])  # what a non-bumpless PID would add
+    assert naive > 5e-3, "precondition: the gain change had an error to act on"
+    assert jump < 0.1 * naive
+
+
+def test_watch_streams_samples(start_daemon) -> None:  # type: ignore[no-untyped-def]
+    d = start_daemon()
+    proc = d.cli("watch", "--count", "4", "--rate", "20")
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stdout.strip().splitlines()
+    assert len(lines) == 4
+    ts = [float(ln.split("t=")[1].split(" s")[0]) for ln in lines]
+    assert ts == sorted(ts) and len(set(ts)) == 4
+    assert all("piezo=" in ln and "engaged" in ln for ln in lines)
+
+
+def test_rotate_starts_a_new_complete_file(start_daemon) -> None:  # type: ignore[no-untyped-def]
+    d = start_daemon()
+    d.wait_status_lines(1)
+    proc = d.cli("rotate")
+    assert proc.returncode == 0, proc.stderr
+    new = Path(proc.stdout.split("logging to ")[1].strip())
+    d.wait_status_lines(1)
+    d.stop()
+    files = sorted(d.logs.glob("*.mcap"))
+    assert len(files) == 2 and files[1] == new
+    first, second = read_log(files[0]), read_log(files[1])
+    assert first.complete and second.complete
+    assert second.samples["seq"][0] == first.samples["seq"][-1] + 1
+
+
+def test_fault_needs_reset_before_start(start_daemon) -> None:  # type: ignore[no-untyped-def]
+    d = start_daemon(sim="fail_at_s = 1.0")
+    deadline = time.monotonic() + 20
+    while status(d)["state"] != "fault":
+        assert time.monotonic() < deadline, "no fault"
+        time.sleep(0.1)
+    st = status(d)
+    assert "injected sensor fault" in st["fault_reason"]
+    assert st["sample"]["applied_v"] == pytest.approx(75.0, abs=1e-9)  # safe voltage
+    refused = d.cli("start")
+    assert refused.returncode == 2 and "leveler reset" in refused.stderr
+    assert d.cli("reset").stdout.strip() == "state: idle"
+    assert d.cli("start").stdout.strip() == "state: engaged"
+    d.stop()
+    (log,) = d.logs.glob("*.mcap")
+    states = [e["detail"].get("new") for e in read_log(log).events if e["kind"] == "state"]
+    assert states == ["engaged", "fault", "idle", "engaged", "idle"]
+
+
+def test_bad_requests_get_errors_and_the_daemon_carries_on(start_daemon) -> None:  # type: ignore[no-untyped-def]
+    d = start_daemon()
+    cases = {
+        b'{"v":1,"verb":"fly"}\n': "unknown verb",
+        b"{broken\n": "not valid JSON",
+        b'{"v":1,"verb":"tune","kp_v_per_m":"abc"}\n': "must be a number",
+        b'{"v":1,"verb":"tune","kp_v_per_m":NaN}\n': "not valid JSON",
+        b'{"v":9,"verb":"status"}\n': "version 9 not supported",
+        b"x" * 70000 + b"\n": "longer than",
+    }
+    for payload, needle in cases.items():
+        reply = raw(d.socket, payload)
+        assert reply["ok"] is False and needle in reply["error"], (payload[:40], reply)
+    assert status(d)["state"] == "engaged"
+    assert d.proc.poll() is None
+
+
+def test_sighup_with_a_broken_config_keeps_the_old_one(start_daemon) -> None:  # type: ignore[no-untyped-def]
+    d = start_daemon()
+    good = d.config.read_text()
+    d.config.write_text(good.replace("ki_v_per_m_s = 7.0e5", "ki_v_per_m_s = 'lots'"))
+    d.proc.send_signal(signal.SIGHUP)
+    time.sleep(0.5)
+    assert d.proc.poll() is None
+    assert status(d)["controller"]["ki_v_per_m_s"] == 7e5
+    d.config.write_text(good.replace("ki_v_per_m_s = 7.0e5", "ki_v_per_m_s = 5.0e5"))
+    d.proc.send_signal(signal.SIGHUP)
+    deadline = time.monotonic() + 10
+    while status(d)["controller"]["ki_v_per_m_s"] != 5e5:
+        assert time.monotonic() < deadline, "valid reload not applied"
+        time.sleep(0.1)
+    err = d.stop()
+    assert "reload rejected" in err and "ki_v_per_m_s" in err
+    (log,) = d.logs.glob("*.mcap")
+    reloads = [e["reason"] for e in read_log(log).events if e["kind"] == "reload"]
+    assert reloads[0].startswith("rejected:") and reloads[1] == "applied"
+
+
+def test_notify_ready_then_watchdog_which_stops_when_the_loop_stalls(
+        start_daemon, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    addr = f"leveler-notify-{os.getpid()}"
+    sock.bind("\0" + addr)
+    sock.settimeout(10)
+    try:
+        d = start_daemon(sim="hang_at_s = 4.0\nhang_for_s = 3.0",
+                         env={"NOTIFY_SOCKET": "@" + addr, "WATCHDOG_USEC": "400000"})
+        msgs: list[tuple[float, bytes]] = []
+        deadline = time.monotonic() + 12
+        while time.monotonic() < deadline:
+            try:
+                msgs.append((time.monotonic(), sock.recv(4096)))
+            except TimeoutError:
+                break
+        d.stop()
+    finally:
+        sock.close()
+    kinds = [m.split(b"\n")[0] for _, m in msgs]
+    assert kinds[0] == b"READY=1" or b"READY=1" in kinds[:3]
+    assert b"STATUS=" in msgs[kinds.index(b"READY=1")][1]
+    wd = [t for t, m in msgs if m == b"WATCHDOG=1"]
+    gaps = np.diff(wd)
+    assert len(wd) > 10
+    assert np.median(gaps) == pytest.approx(0.2, abs=0.06)  # WATCHDOG_USEC / 2
+    assert gaps.max() > 2.5  # silent while the loop hung for 3 s
+    assert any(m.startswith(b"STATUS=t=") for _, m in msgs)
+
+
+def as_user(uid: int, fn) -> str:  # type: ignore[no-untyped-def]
+    """Run fn() in a forked child that has dropped to uid (no exec: the venv may be
+    unreadable to that user); returns what fn returned, or the exception's text."""
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # child
+        os.close(r)
+        try:
+            os.setgroups([])
+            os.setgid(uid)
+            os.setuid(uid)
+            out = str(fn())
+        except BaseException as exc:  # report everything to the parent
+            out = f"{type(exc).__name__}: {exc}"
+        os.write(w, out.encode())
+        os._exit(0)
+    os.close(w)
+    with os.fdopen(r) as fh:
+        out = fh.read()
+    os.waitpid(pid, 0)
+    return out
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="needs root to act as another user (nobody)")
+def test_a_client_without_access_is_refused(start_daemon) -> None:  # type: ignore[no-untyped-def]
+    from leveler.client import Client
+
+    d = start_daemon()
+    nobody = 65534
+
+    def connect_with_cli_client() -> str:
+        Client(d.socket)
+        return "connected"
+
+    def talk_raw() -> str:
+        return str(raw(d.socket, b'{"verb": "status"}\n'))
+
+    # file mode 0660: nobody cannot even connect, and the client says why
+    assert (d.socket.stat().st_mode & 0o777) == 0o660
+    assert "access denied" in as_user(nobody, connect_with_cli_client)
+    # loosen the mode by accident: the peer-credential check still refuses
+    os.chmod(d.socket.parent, 0o755)
+    os.chmod(d.socket, 0o666)
+    reply = as_user(nobody, talk_raw)
+    assert "access denied: uid 65534" in reply
+    d.stop()
+    (log,) = d.logs.glob("*.mcap")
+    refused = [e for e in read_log(log).events if e["kind"] == "access"]
+    assert refused and refused[0]["detail"]["uid"] == nobody
+
+
+def test_no_daemon_is_a_clear_message(tmp_path: Path) -> None:
+    proc = subprocess.run([sys.executable, "-m", "leveler.cli", "status", "--socket",
+                           str(tmp_path / "none.sock")], capture_output=True, text=True,
+                          timeout=30)
+    assert proc.returncode == 2
+    assert "no leveler daemon is running" in proc.stderr and "Traceback" not in proc.stderr

@@ -1,0 +1,53 @@
+"""Writing tuned values back into a commented config file, atomically."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from leveler.config import ConfigError
+from leveler.persist import set_keys, write_atomic
+from leveler.settings import load_config
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_values_replaced_in_place_comments_kept() -> None:
+    text = (REPO / "config" / "sim.toml").read_text()
+    out = set_keys(text, "controller", {"ki_v_per_m_s": 6.5e5, "kp_v_per_m": 1000.0})
+    assert "ki_v_per_m_s = 650000.0        # integral-dominant" in out
+    assert "kp_v_per_m = 1000.0\n" in out
+    assert out.count("ki_v_per_m_s") == 1
+    before, after = text.splitlines(), out.splitlines()
+    assert len(before) == len(after)
+    assert sum(a != b for a, b in zip(before, after, strict=True)) == 2
+
+
+def test_missing_key_is_added_to_its_section_not_elsewhere() -> None:
+    text = ("[loop]\nrate_hz = 10.0\n\n[controller]\nki_v_per_m_s = 1.0\n\n"
+            "[sensor]\nbackend = 'sim'\n")
+    out = set_keys(text, "controller", {"kd_v_s_per_m": 2.0})
+    assert out.index("kd_v_s_per_m = 2.0") < out.index("[sensor]")
+    assert out.index("kd_v_s_per_m = 2.0") > out.index("[controller]")
+
+
+def test_missing_section_is_appended() -> None:
+    out = set_keys("[loop]\nrate_hz = 10.0", "controller", {"ki_v_per_m_s": 3.0})
+    assert out.endswith("[controller]\nki_v_per_m_s = 3.0\n")
+
+
+def test_atomic_write_validates_before_replacing(tmp_path: Path) -> None:
+    path = tmp_path / "lab.toml"
+    original = (REPO / "config" / "sim.toml").read_text()
+    path.write_text(original)
+    path.chmod(0o640)
+    with pytest.raises(ConfigError):
+        write_atomic(path, original.replace("rate_hz = 10.0", "rate_hz = -1.0"), load_config)
+    assert path.read_text() == original
+    assert list(tmp_path.iterdir()) == [path]  # no temporary left behind
+    new = set_keys(original, "controller", {"ki_v_per_m_s": 5e5})
+    write_atomic(path, new, load_config)
+    cfg, _ = load_config(path)
+    assert cfg.controller.ki_v_per_m_s == 5e5
+    assert path.stat().st_mode & 0o777 == 0o640
