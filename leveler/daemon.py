@@ -289,6 +289,9 @@ class Daemon:
                     signal.SIGHUP: self._on_hup}
         previous = {sig: signal.signal(sig, h) for sig, h in handlers.items()}
         loop, clock, cfg = self.loop, self.clock, self.cfg
+        # A thread holding the interpreter lock keeps the loop waiting up to one switch
+        # interval (5 ms by default) after its deadline: keep that below a period.
+        sys.setswitchinterval(min(sys.getswitchinterval(), self.dt / 4))
         print(f"leveler {__version__}: {cfg.sensor.backend} backend at {cfg.loop.rate_hz:g} Hz, "
               f"logging to {self.log.path}, control socket {self.socket_path}", flush=True)
         wd = self.notifier.watchdog_interval_s
