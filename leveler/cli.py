@@ -9,7 +9,7 @@ from collections.abc import Sequence
 from leveler.client import ClientError
 from leveler.config import ConfigError
 from leveler.durations import parse_duration
-from leveler.logreader import LogError
+from leveler.errors import LogError
 
 
 def _duration(text: str) -> float:

@@ -32,6 +32,7 @@ from mcap.opcode import Opcode
 from mcap.records import Attachment, Channel, Header, McapRecord, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
+from leveler.errors import LogError
 from leveler.records import Event, Sample, Truth
 
 SAMPLE_TOPIC = "/leveler/sample"
@@ -55,10 +56,6 @@ _PARSED = {
 _DAMAGE = (McapError, ValueError, struct.error, zstandard.ZstdError, RuntimeError)
 _DTYPES = {"int": np.int64, "float": np.float64, "bool": np.bool_, "str": np.str_}
 _BATCH = 8192  # messages decoded at once: bounds the memory of intermediate dicts
-
-
-class LogError(Exception):
-    """A log file cannot be written or read; the message names the file."""
 
 
 @dataclass
