@@ -31,6 +31,9 @@ pytestmark = pytest.mark.systemd
 
 REPO = Path(__file__).resolve().parents[2]
 SITE_PACKAGES = Path(sysconfig.get_path("purelib"))
+# The checkout may live where the unit's sandbox hides it (PrivateTmp=, ProtectHome=): a
+# clone under /tmp, say. The test's drop-ins bind it back in, read-only, for the service only.
+CHECKOUT_BINDS = f"BindReadOnlyPaths={REPO} {SITE_PACKAGES}\n"
 BOOT_TIMEOUT_S = 90.0
 HANG_AT_S = 20.0  # loop time at which the simulated sensor stops answering...
 HANG_FOR_S = 60.0  # ...for this long: far past the test's WatchdogSec=3s
@@ -261,7 +264,7 @@ def service(container: Container) -> Container:
         assert line in out, out
     assert ct.run("cat", "/etc/leveler/leveler.toml") == config
     ct.write("/etc/systemd/system/leveler.service.d/test.conf",
-             "[Service]\nWatchdogSec=3s\nRestartSec=1s\n")
+             "[Service]\nWatchdogSec=3s\nRestartSec=1s\n" + CHECKOUT_BINDS)
     ct.run("systemctl", "daemon-reload")
     ct.run("systemctl", "start", "leveler", timeout=60)
     return ct
@@ -317,7 +320,7 @@ def test_sandbox_holds_for_python_in_the_unit(service: Container) -> None:
                 "/etc/systemd/system/leveler-probe.service")
     service.write("/etc/systemd/system/leveler-probe.service.d/probe.conf",
                   "[Service]\nType=oneshot\nWatchdogSec=0\nRestart=no\nExecStart=\n"
-                  "ExecStart=/opt/leveler/bin/python /opt/leveler/probe.py\n")
+                  "ExecStart=/opt/leveler/bin/python /opt/leveler/probe.py\n" + CHECKOUT_BINDS)
     service.run("systemctl", "daemon-reload")
     service.run("systemctl", "start", "leveler-probe", timeout=60)
     line = next(ln for ln in service.journal("leveler-probe").splitlines()
