@@ -257,3 +257,14 @@ def test_no_daemon_is_a_clear_message(tmp_path: Path) -> None:
                           timeout=30)
     assert proc.returncode == 2
     assert "no leveler daemon is running" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_suggested_gains_can_be_applied(start_daemon) -> None:  # type: ignore[no-untyped-def]
+    d = start_daemon()
+    proc = d.cli("tune", "--suggest", "--apply")
+    assert proc.returncode == 0, proc.stderr
+    assert f"plant model from {d.config}" in proc.stdout  # asked the daemon for its config
+    assert "gain margin" in proc.stdout and "applied: kp_v_per_m = 0" in proc.stdout
+    ki = float(proc.stdout.split("applied:")[1].split("ki_v_per_m_s = ")[1].split(",")[0])
+    assert ki > 7e5  # more low-frequency gain than the shipped integrator
+    assert status(d)["controller"]["ki_v_per_m_s"] == ki
