@@ -40,6 +40,17 @@ def _type_name(tp: Any) -> str:
     )
 
 
+def _bounded(value: float, key: str, meta: typing.Mapping[str, Any]) -> Any:
+    """`value` if it satisfies the field's gt/ge/le bounds, else a ConfigError naming key."""
+    if "gt" in meta and not value > meta["gt"]:
+        raise ConfigError(f"{key}: must be > {meta['gt']}, got {value!r}")
+    if "ge" in meta and not value >= meta["ge"]:
+        raise ConfigError(f"{key}: must be >= {meta['ge']}, got {value!r}")
+    if "le" in meta and not value <= meta["le"]:
+        raise ConfigError(f"{key}: must be <= {meta['le']}, got {value!r}")
+    return value
+
+
 def _convert(tp: Any, value: Any, key: str, meta: typing.Mapping[str, Any]) -> Any:
     origin = typing.get_origin(tp)
     if origin in (typing.Union, types.UnionType):
@@ -61,23 +72,11 @@ def _convert(tp: Any, value: Any, key: str, meta: typing.Mapping[str, Any]) -> A
         value = float(value)
         if not math.isfinite(value) and not meta.get("allow_inf", False):
             raise ConfigError(f"{key}: must be finite, got {value!r}")
-        if "gt" in meta and not value > meta["gt"]:
-            raise ConfigError(f"{key}: must be > {meta['gt']}, got {value!r}")
-        if "ge" in meta and not value >= meta["ge"]:
-            raise ConfigError(f"{key}: must be >= {meta['ge']}, got {value!r}")
-        if "le" in meta and not value <= meta["le"]:
-            raise ConfigError(f"{key}: must be <= {meta['le']}, got {value!r}")
-        return value
+        return _bounded(value, key, meta)
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise ConfigError(f"{key}: expected an integer, got {value!r}")
-        if "gt" in meta and not value > meta["gt"]:
-            raise ConfigError(f"{key}: must be > {meta['gt']}, got {value!r}")
-        if "ge" in meta and not value >= meta["ge"]:
-            raise ConfigError(f"{key}: must be >= {meta['ge']}, got {value!r}")
-        if "le" in meta and not value <= meta["le"]:
-            raise ConfigError(f"{key}: must be <= {meta['le']}, got {value!r}")
-        return value
+        return _bounded(value, key, meta)
     if tp in (bool, str):
         if not isinstance(value, tp):
             raise ConfigError(f"{key}: expected {_type_name(tp)}, got {value!r}")
