@@ -9,7 +9,7 @@ from collections.abc import Sequence
 from leveler.client import ClientError
 from leveler.config import ConfigError
 from leveler.durations import parse_duration
-from leveler.errors import LogError
+from leveler.errors import ControlError, LogError
 
 
 def _duration(text: str) -> float:
@@ -209,7 +209,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args))
-    except (ConfigError, LogError, ClientError) as exc:
+    except (ConfigError, LogError, ClientError, ControlError) as exc:
         print(f"leveler {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

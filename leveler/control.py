@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
+from leveler.errors import ControlError
 from leveler.protocol import MAX_LINE_BYTES, ProtocolError, encode, parse_request
 from leveler.rt import demote_thread
 
@@ -113,6 +114,13 @@ class ControlServer:
 
     def start(self) -> None:
         """Bind (replacing a stale socket, refusing a live one) and start accepting."""
+        try:
+            self._bind()
+        except OSError as exc:
+            raise ControlError(f"control socket {self.path}: {exc.strerror or exc} "
+                               "(set [control] socket_path to a writable place)") from None
+
+    def _bind(self) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True, mode=0o750)
         if self.path.exists() or self.path.is_symlink():
             probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
@@ -121,7 +129,7 @@ class ControlServer:
             except OSError:
                 self.path.unlink()  # left behind by a daemon that died
             else:
-                raise RuntimeError(f"another leveler daemon is listening on {self.path}")
+                raise ControlError(f"another leveler daemon is listening on {self.path}")
             finally:
                 probe.close()
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_CLOEXEC)
@@ -139,14 +147,15 @@ class ControlServer:
         self._thread.start()
 
     def close(self) -> None:
+        """Stop serving; remove the socket file only if it is ours (never another daemon's)."""
         self._closing.set()
         if self._sock is not None:
             with contextlib.suppress(OSError):
                 self._sock.shutdown(socket.SHUT_RDWR)
             self._sock.close()
             self._sock = None
-        with contextlib.suppress(FileNotFoundError):
-            self.path.unlink()
+            with contextlib.suppress(FileNotFoundError):
+                self.path.unlink()
         if self._thread is not None:
             self._thread.join(timeout=2)
 

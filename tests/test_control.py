@@ -268,3 +268,14 @@ def test_suggested_gains_can_be_applied(start_daemon) -> None:  # type: ignore[n
     ki = float(proc.stdout.split("applied:")[1].split("ki_v_per_m_s = ")[1].split(",")[0])
     assert ki > 7e5  # more low-frequency gain than the shipped integrator
     assert status(d)["controller"]["ki_v_per_m_s"] == ki
+
+
+def test_a_second_daemon_on_the_same_socket_is_refused(start_daemon) -> None:  # type: ignore[no-untyped-def]
+    first = start_daemon()
+    proc = subprocess.run([sys.executable, "-m", "leveler.cli", "run", "--config",
+                           str(first.config), "--duration", "5s"], capture_output=True,
+                          text=True, timeout=60)
+    assert proc.returncode == 2
+    assert "another leveler daemon is listening" in proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert status(first)["state"] == "engaged"  # the first one carries on
