@@ -44,7 +44,8 @@ install:
 systemd-deps:
 	@if command -v systemd-analyze >/dev/null && command -v systemd-nspawn >/dev/null; then :; \
 	elif [ "$$(id -u)" -eq 0 ]; then \
-	  apt-get update -qq && apt-get install -y -qq systemd systemd-container; \
+	  { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq systemd systemd-container; } \
+	    || echo "could not install systemd-container: the container tests will skip"; \
 	else echo "need systemd-analyze and systemd-nspawn: sudo apt-get install systemd systemd-container"; fi
 
 # The unit judged by systemd's own tools, then booted in a container (root; about a minute).
