@@ -45,6 +45,30 @@ def _cmd_recover(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_import_csv(args: argparse.Namespace) -> int:
+    from leveler.importcsv import run_import_csv_command
+
+    return run_import_csv_command(args)
+
+
+def _cmd_replay(args: argparse.Namespace) -> int:
+    from leveler.replay import run_replay_command
+
+    return run_replay_command(args)
+
+
+def _cmd_diagnose(args: argparse.Namespace) -> int:
+    from leveler.diagnosecmd import run_diagnose_command
+
+    return run_diagnose_command(args)
+
+
+def _gains(text: str) -> tuple[float, float, float]:
+    from leveler.replay import parse_gains
+
+    return parse_gains(text)
+
+
 def _cmd_control(args: argparse.Namespace) -> int:
     from leveler.client import Client, format_status, run_watch
 
@@ -201,6 +225,71 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("log", help="the damaged MCAP file (left untouched)")
     rec.add_argument("--out", required=True, help="where to write the recovered copy")
     rec.set_defaults(func=_cmd_recover)
+
+    imp = sub.add_parser(
+        "import-csv", help="convert another system's CSV recording into a leveler MCAP log",
+        description="Convert data recorded by another system into a leveler MCAP log, so "
+        "replay, diagnose and asd can analyse it. FILE is UTF-8 text, comma-separated; blank "
+        "lines and lines starting with # are skipped; the first other line is the header. "
+        "Columns, named in the header (case-insensitive, any order): t_s (time [s], strictly "
+        "increasing, uniformly sampled), actuator_V (voltage applied to the actuator [V]), "
+        "sensor_m (displacement at the pendulum end [m]) and optionally temperature_K (table "
+        "temperature [K]); other columns are ignored. Values are SI as given, not converted. "
+        "At least 16 rows. A bad row (reported by line number) fails the import unless "
+        "--skip-bad; no output is left behind on error. Details: docs/log-format.md, "
+        "\"Importing other systems' data (CSV)\".")
+    imp.add_argument("csv", metavar="FILE.csv", help="the CSV file to import (left untouched)")
+    imp.add_argument("--out", required=True, metavar="LOG.mcap", help="the MCAP log to write")
+    imp.add_argument("--skip-bad", action="store_true",
+                     help="leave bad rows out (listed on stderr) instead of failing")
+    imp.add_argument("--force", action="store_true", help="replace --out if it exists")
+    imp.set_defaults(func=_cmd_import_csv)
+    rp = sub.add_parser(
+        "replay", help="how well the plant model predicts a log (residual, bands, what-if)",
+        description="Drive the plant model with the logged actuator voltage (and the logged "
+        "temperature, if any) and compare its prediction with the logged sensor reading. "
+        "Prints the residual RMS, its RMS and mean ASD in the bands 0.1-1 mHz, 1-10 mHz, "
+        "10-100 mHz and 0.1-1 Hz, and the fraction of the measured variance the model "
+        "explains. The first minutes are skipped (the log may start out of equilibrium); "
+        "the table's unknown offset is removed. The model is the config stored in the log "
+        "unless --model names another (e.g. one written by `leveler diagnose`).")
+    rp.add_argument("log", help="MCAP log written by leveler (or by `leveler import-csv`)")
+    rp.add_argument("--model", default=None, help="config file whose [plant] is the model "
+                    "(default: the config stored in the log)")
+    rp.add_argument("--out", default=None, help="write measured, predicted and residual per "
+                    "sample to this MCAP file (topic /leveler/replay)")
+    rp.add_argument("--json", action="store_true", help="print one JSON object")
+    rp.add_argument("--plot", default=None, help="save time-series overlay and ASDs (PNG)")
+    rp.add_argument("--gains", type=_gains, default=None, metavar="KP,KI,KD",
+                    help="what-if: rerun the controller with these gains [V/m, V/(m s), "
+                    "V s/m] against the model and the disturbance the log implies; prints "
+                    "the sensor ASD they would have given at 0.1, 1 and 10 mHz")
+    rp.set_defaults(func=_cmd_replay)
+
+    dg = sub.add_parser(
+        "diagnose", help="find, name and fit what the plant model is missing",
+        description="Replay the log, look for structure in the residual (spectral lines, "
+        "coherence with the actuator and the temperature, a lattice in the readings, "
+        "trends), fit each named effect (periodic_disturbance, temperature_coupling, "
+        "actuator_delay, actuator_hysteresis, extra_resonance, sensor_gain_error, "
+        "sensor_drift, adc_quantization) on the first two thirds of the log and keep it only "
+        "if it predicts the last third better than its complexity penalty; repeat while one "
+        "does. Writes the updated model (a plain config: `leveler sim --config` and "
+        "`leveler replay --model` use it) next to the log as LOG.fitted.toml. Says so, and "
+        "writes nothing, when no effect is missing.")
+    dg.add_argument("log", help="MCAP log written by leveler (or by `leveler import-csv`)")
+    dg.add_argument("--model", default=None, help="config file whose [plant] is the model "
+                    "to test (default: the config stored in the log)")
+    dg.add_argument("--model-out", default=None,
+                    help="where to write the fitted model (default: LOG.fitted.toml)")
+    dg.add_argument("--report", default=None, metavar="DIR",
+                    help="write residual_asd.png, timeseries.png and summary.md here")
+    dg.add_argument("--max-effects", type=int, default=4,
+                    help="stop after this many effects (default: %(default)s)")
+    dg.add_argument("--json", action="store_true",
+                    help="print one JSON object: effects, gap_before, gap_after, model_out, "
+                    "and every candidate tried with its scores")
+    dg.set_defaults(func=_cmd_diagnose)
     _add_control_commands(sub)
     return parser
 

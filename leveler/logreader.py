@@ -17,7 +17,7 @@ import os
 import struct
 import zlib
 from collections.abc import Iterator
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from io import BytesIO
 from pathlib import Path
 from typing import IO
@@ -33,10 +33,11 @@ from mcap.records import Attachment, Channel, Header, McapRecord, Metadata, Sche
 from mcap.writer import CompressionType, Writer
 
 from leveler.errors import LogError
-from leveler.records import Event, Sample, Truth
+from leveler.records import Environment, Event, Sample, Truth
 
 SAMPLE_TOPIC = "/leveler/sample"
 TRUTH_TOPIC = "/leveler/truth"
+ENVIRONMENT_TOPIC = "/leveler/environment"
 EVENT_TOPIC = "/leveler/event"
 METADATA_NAME = "leveler"
 
@@ -69,6 +70,7 @@ class LogData:
     complete: bool
     # Why reading stopped early ("" when complete): tells a crash cut from corruption.
     stop_reason: str = ""
+    environment: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def _decompress(body: bytes) -> bytes:
@@ -228,7 +230,8 @@ class _Table:
 def read_log(path: str | Path) -> LogData:
     """Read every readable message of a log; a truncated file gives complete=False."""
     scan = _Scan(path)
-    tables = {SAMPLE_TOPIC: _Table(Sample), TRUTH_TOPIC: _Table(Truth), EVENT_TOPIC: _Table(Event)}
+    tables = {SAMPLE_TOPIC: _Table(Sample), TRUTH_TOPIC: _Table(Truth), EVENT_TOPIC: _Table(Event),
+              ENVIRONMENT_TOPIC: _Table(Environment)}
     by_channel: dict[int, _Table] = {}
     metadata: dict[str, dict[str, str]] = {}
     try:
@@ -251,8 +254,9 @@ def read_log(path: str | Path) -> LogData:
             for t, data in zip(events.times, events.payloads, strict=True)
         ]
         samples = tables[SAMPLE_TOPIC].result()
-        truth = tables[TRUTH_TOPIC]
+        truth, env = tables[TRUTH_TOPIC], tables[ENVIRONMENT_TOPIC]
         truth_cols = truth.result() if truth in by_channel.values() else {}
+        env_cols = env.result() if env in by_channel.values() else {}
     except orjson.JSONDecodeError as e:
         raise LogError(f"{scan.path}: a message is not valid JSON: {e}") from e
     return LogData(
@@ -262,6 +266,7 @@ def read_log(path: str | Path) -> LogData:
         metadata=metadata,
         complete=scan.complete,
         stop_reason=scan.stop_reason,
+        environment=env_cols,
     )
 
 
@@ -321,6 +326,7 @@ def recover(src: str | Path, dst: str | Path) -> int:
 
 
 __all__ = [
+    "ENVIRONMENT_TOPIC",
     "EVENT_TOPIC",
     "METADATA_NAME",
     "SAMPLE_TOPIC",

@@ -45,13 +45,14 @@ from mcap.records import (
 )
 
 from leveler.logreader import (
+    ENVIRONMENT_TOPIC,
     EVENT_TOPIC,
     METADATA_NAME,
     SAMPLE_TOPIC,
     TRUTH_TOPIC,
     LogError,
 )
-from leveler.records import Event, Sample, Truth
+from leveler.records import Environment, Event, Sample, Truth
 from leveler.rt import demote_thread
 
 _log = logging.getLogger(__name__)
@@ -105,6 +106,11 @@ _TRUTH_FIELDS: dict[str, tuple[str, str]] = {
     "pendulum_rad": ("number", "inverted-pendulum deflection relative to the platform [rad]"),
     "temperature_k": ("number", "plate temperature [K]"),
     "sensor_drift_m": ("number", "sensor zero drift [m]"),
+}
+_ENVIRONMENT_FIELDS: dict[str, tuple[str, str]] = {
+    "seq": ("integer", "cycle number of the matching sample"),
+    "t_s": ("number", "loop time since start [s]"),
+    "temperature_k": ("number", "measured table temperature [K]" + _NULL),
 }
 _EVENT_FIELDS: dict[str, tuple[str, str]] = {
     "t_s": ("number", "loop time since start [s]"),
@@ -332,6 +338,7 @@ class LogWriter:
         chunk_interval_s: float = 1.0,
         compression: str = "zstd",
         truth: bool = False,
+        environment: bool = False,
         chunk_size: int = 1 << 20,
         max_backlog: int = 600_000,
     ) -> None:
@@ -352,6 +359,10 @@ class LogWriter:
             self._sample_ch = self._channel(SAMPLE_TOPIC, "leveler.Sample", _SAMPLE_FIELDS)
             self._truth_ch = (
                 self._channel(TRUTH_TOPIC, "leveler.Truth", _TRUTH_FIELDS) if truth else None
+            )
+            self._env_ch = (
+                self._channel(ENVIRONMENT_TOPIC, "leveler.Environment", _ENVIRONMENT_FIELDS)
+                if environment else None
             )
             self._event_ch = self._channel(EVENT_TOPIC, "leveler.Event", _EVENT_FIELDS)
             self._mcap.metadata(METADATA_NAME, meta)
@@ -438,6 +449,15 @@ class LogWriter:
             return
         self._queue.append((self._truth_ch, t, log_time_ns))
 
+    def environment(self, e: Environment, log_time_ns: int) -> None:
+        """Queue one environment record (needs environment=True)."""
+        if self._error is not None or self._closed or self._env_ch is None:
+            self._raise()
+        if len(self._queue) >= self._max_backlog:
+            self._dropped += 1
+            return
+        self._queue.append((self._env_ch, e, log_time_ns))
+
     def event(self, e: Event, log_time_ns: int) -> None:
         """Queue one event; events are rare and never dropped."""
         if self._error is not None or self._closed:
@@ -488,7 +508,8 @@ class LogWriter:
             raise LogError(f"{self._path}: log writer failed: {self._error!r}") from self._error
         if self._closed:
             raise LogError(f"{self._path}: log is closed")
-        raise LogError(f"{self._path}: truth topic not enabled (LogWriter(truth=True))")
+        raise LogError(f"{self._path}: topic not enabled (LogWriter(truth=True) or "
+                       "LogWriter(environment=True))")
 
     # -- consumer side: the writer thread ----------------------------------------------
 

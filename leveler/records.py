@@ -53,3 +53,16 @@ class Event:
     kind: str
     reason: str
     detail: dict[str, object]
+
+
+@dataclass(slots=True)
+class Environment:
+    """A measured condition of the stand's surroundings, e.g. the table's temperature.
+
+    Replay and diagnose use it as a model input (thermal tilt); only imported logs carry it
+    so far, simulated logs have the plate temperature in their truth topic.
+    """
+
+    seq: int
+    t_s: float
+    temperature_k: float

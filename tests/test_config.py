@@ -78,13 +78,20 @@ def test_bad_durations(text: str) -> None:
 
 
 def _keys(cls: type, prefix: str = "") -> list[str]:
+    """Every key of a config section, recursing into tables (optional ones too: effects)."""
     import dataclasses
+    import typing
 
+    hints = typing.get_type_hints(cls)
     out = []
     for f in dataclasses.fields(cls):  # type: ignore[arg-type]
+        table = [t for t in typing.get_args(hints[f.name]) if dataclasses.is_dataclass(t)]
         default = f.default_factory() if f.default_factory is not dataclasses.MISSING else None
         if dataclasses.is_dataclass(default):
             out += _keys(type(default), f"{prefix}{f.name}.")
+        elif table:
+            out.append(f"{prefix}{f.name}")
+            out += _keys(table[0], f"{prefix}{f.name}.")
         else:
             out.append(f"{prefix}{f.name}")
     return out

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import lfilter
 
+from leveler.sim.effects import Signals
 from leveler.sim.params import PlantParams
 
 DAY_S = 86400.0
@@ -29,6 +30,7 @@ class Block:
     cooler_tilt_rad: list[float]
     noise_m: list[float]
     drift_m: list[float]
+    effect_tilt_rad: list[float]
 
 
 class Disturbances:
@@ -46,6 +48,7 @@ class Disturbances:
         self._walk_k = 0.0
         self._drift_m = 0.0
         self._lag_state: np.ndarray | None = None
+        self._tilt_effects = [(fx, {}) for fx in params.effects.of("tilt")]
 
     def next_block(self) -> Block:
         th, co, se = self._p.thermal, self._p.cooler, self._p.sensor
@@ -71,9 +74,14 @@ class Disturbances:
         drift = self._drift_m + np.cumsum(dsteps)
         self._drift_m = float(drift[-1])
 
+        extra = np.zeros(n)
+        sig = Signals(t, dt, temp)
+        for fx, state in self._tilt_effects:
+            extra += fx.tilt(sig, state)  # type: ignore[attr-defined]
+
         self._start += n
         return Block(start, temp.tolist(), thermal_tilt.tolist(), cooler.tolist(),
-                     noise.tolist(), drift.tolist())
+                     noise.tolist(), drift.tolist(), extra.tolist())
 
     def _lag(self, temp: np.ndarray) -> np.ndarray:
         """First-order thermal lag, exact for a signal held over each sample."""

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from leveler.config import non_negative, positive
+from leveler.sim.effects import EffectsParams
 
 G_STANDARD = 9.80665
 
@@ -146,3 +147,4 @@ class PlantParams:
     cooler: CoolerParams = field(default_factory=CoolerParams)
     piezo: PiezoParams = field(default_factory=PiezoParams)
     sensor: SensorParams = field(default_factory=SensorParams)
+    effects: EffectsParams = field(default_factory=EffectsParams)

@@ -8,9 +8,11 @@ platform tilt at t = n dt. Driver, replay and discrepancy tools all use this one
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 from leveler.records import Truth
 from leveler.sim.disturbance import Block, Disturbances
+from leveler.sim.effects import ExtraResonance
 from leveler.sim.params import PlantParams
 from leveler.sim.pendulum import PendulumModel
 
@@ -29,6 +31,7 @@ class Plant:
         self._max_dv = pz.slew_v_per_s * dt_s
         self.v_applied = pz.ref_v
         self.v_target = pz.ref_v
+        self.v_effective = pz.ref_v  # what moves the piezo after actuator effects
         self._arm = params.pendulum.sensor_arm_m
         self._gain, self._offset = se.gain_v_per_m, se.offset_v
         self._adc_min, self._lsb = se.adc_min_v, se.lsb_v
@@ -39,12 +42,19 @@ class Plant:
         self._i = 0
         self.pendulum = PendulumModel(params.pendulum, dt_s)
         self.pendulum.settle(params.pendulum, self.tilt_rad())
+        fx = params.effects
+        self._actuator_fx = [e.stepper(dt_s) for e in fx.of("actuator")]
+        self._sensor_fx = [e.stepper(dt_s) for e in fx.of("sensor")]
+        self._resonances = [_Resonance(e, dt_s, params.pendulum.sensor_arm_m
+                                       * params.pendulum.amplification)
+                            for e in fx.of("response") if isinstance(e, ExtraResonance)]
+        self._extra_m = 0.0
 
     def tilt_rad(self) -> float:
         """True platform tilt now: piezo stroke / spacing + thermal + cooler + offset."""
         b, i = self._block, self._i
-        return (self._tilt_per_v * (self.v_applied - self._v_ref) + b.thermal_tilt_rad[i]
-                + b.cooler_tilt_rad[i] + self._offset_tilt)
+        return (self._tilt_per_v * (self.v_effective - self._v_ref) + b.thermal_tilt_rad[i]
+                + b.cooler_tilt_rad[i] + b.effect_tilt_rad[i] + self._offset_tilt)
 
     def command(self, v: float) -> float:
         """Set the piezo target voltage; returns what the next step will apply (clamped, slewed)."""
@@ -61,7 +71,15 @@ class Plant:
 
     def step(self) -> None:
         """Advance one dt."""
-        self.v_applied = self._slewed()
+        self.v_applied = v = self._slewed()
+        if self._actuator_fx:
+            t_s = self.n * self.dt_s
+            for f in self._actuator_fx:
+                v = f(v, t_s)
+        self.v_effective = v
+        if self._resonances:
+            phi_u = self._tilt_per_v * (v - self._v_ref)
+            self._extra_m = sum(r.step(phi_u) for r in self._resonances)
         self.pendulum.step(self.tilt_rad())
         self.n += 1
         self._i += 1
@@ -72,7 +90,11 @@ class Plant:
     def measure(self) -> tuple[int, float, bool]:
         """Sensor through the ADC: (counts, metres the counts mean, railed)."""
         b, i = self._block, self._i
-        x = self._arm * self.pendulum.theta + b.drift_m[i] + b.noise_m[i]
+        x = self._arm * self.pendulum.theta + self._extra_m + b.drift_m[i] + b.noise_m[i]
+        if self._sensor_fx:  # after the noise: a coarse ADC digitizes the noisy signal
+            t_s = self.n * self.dt_s
+            for f in self._sensor_fx:
+                x = f(x, t_s)
         counts = math.floor((self._gain * x + self._offset - self._adc_min) / self._lsb + 0.5)
         railed = counts <= 0 or counts >= self._top
         if counts < 0:
@@ -90,8 +112,39 @@ class Plant:
             tilt_rad=self.tilt_rad(),
             thermal_tilt_rad=b.thermal_tilt_rad[i],
             cooler_tilt_rad=b.cooler_tilt_rad[i],
-            piezo_tilt_rad=self._tilt_per_v * (self.v_applied - self._v_ref),
+            piezo_tilt_rad=self._tilt_per_v * (self.v_effective - self._v_ref),
             pendulum_rad=self.pendulum.theta,
             temperature_k=b.temperature_k[i],
             sensor_drift_m=b.drift_m[i],
         )
+
+
+class _Resonance:
+    """An extra resonance stepped sample by sample: the same discrete filter replay uses
+    (direct form II transposed, from rest at the first input)."""
+
+    def __init__(self, fx: ExtraResonance, dt_s: float, static_m_per_rad: float) -> None:
+        b, a = fx.discrete(dt_s)
+        self._b = (b / a[0]).tolist()
+        self._a = (a / a[0]).tolist()
+        self._z = [0.0] * (len(self._a) - 1)
+        self._k = fx.gain * static_m_per_rad
+        self._x0: float | None = None
+        self._filter: Callable[[float], float] = self._step
+        if abs(self._b[0]) > 1e-12:
+            raise ValueError("extra resonance filter must be strictly proper")
+
+    def _step(self, x: float) -> float:
+        """Consume this step's input; returns the output at the *next* sample (the ZOH
+        filter has no direct term, so that output is already known)."""
+        b, a, z = self._b, self._a, self._z
+        y = b[0] * x + z[0]
+        for j in range(len(z) - 1):
+            z[j] = b[j + 1] * x + z[j + 1] - a[j + 1] * y
+        z[-1] = b[-1] * x - a[-1] * y
+        return z[0]
+
+    def step(self, phi_u: float) -> float:
+        if self._x0 is None:
+            self._x0 = phi_u
+        return self._k * self._filter(phi_u - self._x0)

@@ -1,0 +1,564 @@
+"""Named model effects: physically meaningful additions to the plant, one small class each.
+
+An effect is a `[plant.effects.<name>]` table of a config file. The same class serves three
+users, which is what keeps them consistent:
+
+- the simulated plant steps it sample by sample (`stepper`, or `tilt` for disturbances,
+  which are generated ahead in blocks);
+- replay applies it to whole logged series at once (`apply`, `tilt`, `response`);
+- diagnose fits it (`free` parameters with their `scale` and `bounds`) starting from the
+  guesses its `guesses` classmethod reads off the evidence in a residual.
+
+Stages, in the order a signal meets them: ``actuator`` (volts the amplifier was told ->
+volts that move the piezo), ``tilt`` (extra platform tilt [rad]), ``response`` (extra
+displacement at the sensor caused by the piezo tilt [m]) and ``sensor`` (true
+displacement -> reading [m]). To add an effect: write its class here and list it in
+`EFFECTS` and as a field of `EffectsParams`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field, fields
+from typing import TYPE_CHECKING, Any, ClassVar, Literal
+
+import numpy as np
+from scipy.signal import cont2discrete, lfilter
+from scipy.special import ndtr
+
+from leveler.config import non_negative, positive
+
+if TYPE_CHECKING:
+    from leveler.evidence import Evidence
+
+Stage = Literal["actuator", "tilt", "response", "sensor"]
+
+
+@dataclass(frozen=True, slots=True)
+class Signals:
+    """What an effect may depend on: sample times, the step and (if logged) temperature."""
+
+    t_s: np.ndarray
+    dt_s: float
+    temperature_k: np.ndarray | None = None
+
+
+class Effect:
+    """Base of all effects: class-level description used by the simulator and diagnose."""
+
+    name: ClassVar[str]
+    stage: ClassVar[Stage]
+    title: ClassVar[str]  # a physicist's words for the report
+    free: ClassVar[tuple[str, ...]]  # parameters diagnose fits
+    magnitude: ClassVar[str]  # the free parameter that says how big the effect is
+    linear: ClassVar[bool] = True  # is the effect on the reading proportional to magnitude?
+    needs_temperature: ClassVar[bool] = False
+
+    def values(self) -> dict[str, Any]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}  # type: ignore[arg-type]
+
+    def replace(self, **kw: Any) -> Effect:
+        return type(self)(**(self.values() | kw))
+
+    def scale(self, key: str) -> float:
+        """Typical size of a free parameter: what a fit step of 1 means."""
+        return abs(getattr(self, key)) or 1.0
+
+    def bounds(self, key: str) -> tuple[float, float]:
+        return (-math.inf, math.inf)
+
+    def describe(self) -> str:
+        return self.title
+
+    def band_hz(self) -> tuple[float, float]:
+        """Where in frequency the effect mostly shows (for the report's headline band)."""
+        return (1e-3, 1e-2)
+
+    # Stage hooks; each effect implements the ones of its stage.
+    def apply(self, x: np.ndarray, sig: Signals) -> np.ndarray:
+        raise TypeError(f"{self.name} is not an actuator or sensor effect")
+
+    def stepper(self, dt_s: float) -> Callable[[float, float], float]:
+        """Per-sample form for the simulator: f(value, t_s) -> value."""
+        raise TypeError(f"{self.name} is not an actuator or sensor effect")
+
+    @classmethod
+    def guesses(cls, ev: Evidence) -> list[Effect]:
+        """Starting points for a fit, read off the evidence; [] if nothing points here."""
+        return []
+
+    def variants(self) -> list[Effect]:
+        """Other forms worth fitting that a fitted one implies (other waveform shapes)."""
+        return []
+
+
+# -- tilt: extra platform tilt ---------------------------------------------------------------
+
+
+def waveform(shape: str, phase_frac: np.ndarray) -> np.ndarray:
+    """Unit peak-to-peak periodic shapes (zero mean) of the fraction of a period elapsed."""
+    if shape == "sawtooth":
+        return phase_frac - 0.5
+    if shape == "triangle":
+        return 0.5 - np.abs(2.0 * phase_frac - 1.0)
+    return 0.5 * np.sin(2.0 * np.pi * phase_frac)
+
+
+@dataclass(frozen=True, slots=True)
+class PeriodicDisturbance(Effect):
+    """A periodic tilt: a cooler, an air handler, a pump cycling (sawtooth: slow rise, drop)."""
+
+    name: ClassVar[str] = "periodic_disturbance"
+    stage: ClassVar[Stage] = "tilt"
+    title: ClassVar[str] = "periodic disturbance"
+    free: ClassVar[tuple[str, ...]] = ("period_s", "peak_to_peak_rad", "phase_s")
+    magnitude: ClassVar[str] = "peak_to_peak_rad"
+
+    shape: Literal["sawtooth", "triangle", "sine"] = "sawtooth"
+    period_s: float = positive(300.0)
+    peak_to_peak_rad: float = 0.0  # negative: the waveform upside down (a falling sawtooth)
+    phase_s: float = 0.0  # time at which a period starts (the sawtooth's bottom)
+
+    def tilt(self, sig: Signals, state: dict[str, Any] | None = None) -> np.ndarray:
+        frac = np.mod((sig.t_s - self.phase_s) / self.period_s, 1.0)
+        return self.peak_to_peak_rad * waveform(self.shape, frac)
+
+    def scale(self, key: str) -> float:
+        if key == "phase_s":
+            return self.period_s / 20
+        if key == "period_s":
+            return self.period_s / 100
+        return abs(self.peak_to_peak_rad) or 1e-9
+
+    def bounds(self, key: str) -> tuple[float, float]:
+        return (1e-3, math.inf) if key == "period_s" else (-math.inf, math.inf)
+
+    def describe(self) -> str:
+        return (f"periodic disturbance, period {self.period_s:.4g} s, {self.shape}, "
+                f"{abs(self.peak_to_peak_rad) * 1e6:.3g} urad peak to peak")
+
+    def band_hz(self) -> tuple[float, float]:
+        return (0.5 / self.period_s, 5.0 / self.period_s)
+
+    @classmethod
+    def guesses(cls, ev: Evidence) -> list[Effect]:
+        out: list[Effect] = []
+        for f_hz in ev.peaks(ev.fmin_hz(), 0.1):
+            out += ev.best_phase(cls(shape="sine", period_s=1.0 / f_hz), "phase_s",
+                                 1.0 / f_hz, "peak_to_peak_rad")
+        return out
+
+    def variants(self) -> list[Effect]:
+        """From a fitted sine, the sawtooth and the triangle with the same fundamental:
+        fitting those directly from a grid fails, their harmonics make the cost rugged."""
+        if self.shape != "sine":
+            return []
+        p, pp, ph = self.period_s, self.peak_to_peak_rad, self.phase_s
+        tri_pp, tri_ph = (math.pi**2 / 8) * pp, ph - p / 4
+        if tri_pp < 0:
+            tri_pp, tri_ph = -tri_pp, tri_ph + p / 2
+        return [self.replace(shape="sawtooth", peak_to_peak_rad=math.pi * pp / 2,
+                             phase_s=(ph + p / 2) % p),
+                self.replace(shape="triangle", peak_to_peak_rad=tri_pp, phase_s=tri_ph % p)]
+
+
+@dataclass(frozen=True, slots=True)
+class TemperatureCoupling(Effect):
+    """Tilt following the temperature through a lag: the other axis, a bending table top."""
+
+    name: ClassVar[str] = "temperature_coupling"
+    stage: ClassVar[Stage] = "tilt"
+    title: ClassVar[str] = "temperature coupling"
+    free: ClassVar[tuple[str, ...]] = ("tilt_per_kelvin_rad_per_k", "lag_s")
+    magnitude: ClassVar[str] = "tilt_per_kelvin_rad_per_k"
+    needs_temperature: ClassVar[bool] = True
+
+    tilt_per_kelvin_rad_per_k: float = 0.0
+    lag_s: float = non_negative(600.0)
+    reference_k: float = positive(295.15)
+
+    def tilt(self, sig: Signals, state: dict[str, Any] | None = None) -> np.ndarray:
+        """First-order lag of the temperature, exact for a signal held over each sample;
+        `state` carries the filter across the simulator's blocks."""
+        temp = sig.temperature_k
+        if temp is None:
+            raise ValueError("temperature_coupling needs a temperature series")
+        if self.lag_s == 0:
+            lagged = temp
+        else:
+            a = math.exp(-sig.dt_s / self.lag_s)
+            zi = None if state is None else state.get("zi")
+            if zi is None:
+                zi = np.array([a * temp[0]])  # settled at the first temperature
+            lagged, zi = lfilter([1 - a], [1, -a], temp, zi=zi)
+            if state is not None:
+                state["zi"] = zi
+        return self.tilt_per_kelvin_rad_per_k * (lagged - self.reference_k)
+
+    def scale(self, key: str) -> float:
+        if key == "lag_s":
+            return max(self.lag_s, 60.0) / 10
+        return abs(self.tilt_per_kelvin_rad_per_k) or 1e-7
+
+    def bounds(self, key: str) -> tuple[float, float]:
+        return (1.0, 1e6) if key == "lag_s" else (-math.inf, math.inf)
+
+    def describe(self) -> str:
+        return (f"temperature coupling, {self.tilt_per_kelvin_rad_per_k * 1e6:.3g} urad/K "
+                f"through a {self.lag_s:.4g} s lag")
+
+    def band_hz(self) -> tuple[float, float]:
+        return (1e-4, 1e-3)
+
+    @classmethod
+    def guesses(cls, ev: Evidence) -> list[Effect]:
+        if ev.sig.temperature_k is None:
+            return []
+        ref = float(np.mean(ev.sig.temperature_k))
+        starts = [cls(lag_s=lag, reference_k=ref) for lag in (120.0, 600.0, 1800.0, 5400.0)]
+        return ev.best_linear(starts, "tilt_per_kelvin_rad_per_k", keep=1)
+
+
+# -- actuator: volts commanded -> volts that move the piezo ----------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class ActuatorDelay(Effect):
+    """A transport delay between the logged command and the piezo moving (amplifier, bus)."""
+
+    name: ClassVar[str] = "actuator_delay"
+    stage: ClassVar[Stage] = "actuator"
+    title: ClassVar[str] = "actuator delay"
+    free: ClassVar[tuple[str, ...]] = ("delay_s",)
+    magnitude: ClassVar[str] = "delay_s"
+    linear: ClassVar[bool] = False
+
+    delay_s: float = non_negative(0.0)
+
+    def apply(self, x: np.ndarray, sig: Signals) -> np.ndarray:
+        """u(t - delay) for a sampled-and-held u: linear between the two samples it straddles."""
+        m, f = divmod(max(self.delay_s, 0.0) / sig.dt_s, 1.0)
+        m = int(m)
+        pad = np.concatenate([np.full(m + 1, x[0]), x])
+        n = len(x)
+        return (1 - f) * pad[1 : n + 1] + f * pad[:n]
+
+    def stepper(self, dt_s: float) -> Callable[[float, float], float]:
+        m, f = divmod(self.delay_s / dt_s, 1.0)
+        past: deque[float] = deque(maxlen=int(m) + 2)
+
+        def step(v: float, t_s: float) -> float:
+            if not past:
+                past.extend([v] * (int(m) + 1))
+            past.append(v)  # past[-1] is now, past[-1 - k] is k samples ago
+            return (1 - f) * past[-1 - int(m)] + f * past[-2 - int(m)]
+
+        return step
+
+    def scale(self, key: str) -> float:
+        return max(self.delay_s, 0.05)
+
+    def bounds(self, key: str) -> tuple[float, float]:
+        return (0.0, 30.0)
+
+    def describe(self) -> str:
+        return f"actuator delay, {self.delay_s * 1e3:.4g} ms"
+
+    def band_hz(self) -> tuple[float, float]:
+        return (0.1, 1.0)
+
+    @classmethod
+    def guesses(cls, ev: Evidence) -> list[Effect]:
+        dt = ev.sig.dt_s
+        return ev.best_linear([cls(delay_s=d) for d in (dt, 3 * dt, 10 * dt)], None, keep=1)
+
+
+def play(u: np.ndarray, width_v: float) -> np.ndarray:
+    """Backlash (play) operator of half-width `width_v`: the output follows the input only
+    once it has moved `width_v` the other way; starts centred on the first input."""
+    out = np.empty_like(u)
+    p = float(u[0])
+    w = width_v
+    for i, v in enumerate(u.tolist()):
+        if v - p > w:
+            p = v - w
+        elif p - v > w:
+            p = v + w
+        out[i] = p
+    return out
+
+
+@dataclass(frozen=True, slots=True)
+class ActuatorHysteresis(Effect):
+    """Piezo hysteresis as a Prandtl-Ishlinskii model with one play operator:
+    stroke ~ (1 - fraction) u + fraction * play(u, width_v)."""
+
+    name: ClassVar[str] = "actuator_hysteresis"
+    stage: ClassVar[Stage] = "actuator"
+    title: ClassVar[str] = "actuator hysteresis"
+    free: ClassVar[tuple[str, ...]] = ("width_v", "fraction")
+    magnitude: ClassVar[str] = "fraction"
+
+    model: Literal["prandtl_ishlinskii"] = "prandtl_ishlinskii"
+    width_v: float = positive(1.0)
+    fraction: float = field(default=0.0, metadata={"ge": -1.0, "le": 1.0})
+
+    def apply(self, x: np.ndarray, sig: Signals) -> np.ndarray:
+        return x + self.fraction * (play(x, self.width_v) - x)
+
+    def stepper(self, dt_s: float) -> Callable[[float, float], float]:
+        state: list[float] = []
+        w, a = self.width_v, self.fraction
+
+        def step(v: float, t_s: float) -> float:
+            if not state:
+                state.append(v)
+            p = state[0]
+            if v - p > w:
+                p = v - w
+            elif p - v > w:
+                p = v + w
+            state[0] = p
+            return v + a * (p - v)
+
+        return step
+
+    def scale(self, key: str) -> float:
+        return max(self.width_v, 1e-3) / 4 if key == "width_v" else 0.05
+
+    def bounds(self, key: str) -> tuple[float, float]:
+        return (1e-4, 1e3) if key == "width_v" else (-1.0, 1.0)
+
+    def describe(self) -> str:
+        return (f"actuator hysteresis (Prandtl-Ishlinskii), {abs(self.fraction) * 100:.3g}% "
+                f"of the stroke lags by up to {self.width_v:.3g} V")
+
+    def band_hz(self) -> tuple[float, float]:
+        return (1e-2, 1e-1)
+
+    @classmethod
+    def guesses(cls, ev: Evidence) -> list[Effect]:
+        spread = ev.command_spread_v()
+        if spread <= 0:
+            return []
+        widths = [spread * k for k in (0.02, 0.06, 0.2, 0.5)]
+        return ev.best_linear([cls(width_v=w, fraction=0.1) for w in widths], "fraction", keep=1)
+
+
+# -- response: extra displacement at the sensor driven by the piezo tilt ---------------------
+
+
+@dataclass(frozen=True, slots=True)
+class ExtraResonance(Effect):
+    """A mode the model lacks (table top, mount, the piezo stack) rung by the actuator:
+    a band-pass of the piezo tilt, `gain` times the pendulum's static response at its peak."""
+
+    name: ClassVar[str] = "extra_resonance"
+    stage: ClassVar[Stage] = "response"
+    title: ClassVar[str] = "extra resonance"
+    free: ClassVar[tuple[str, ...]] = ("frequency_hz", "q", "gain")
+    magnitude: ClassVar[str] = "gain"
+
+    frequency_hz: float = positive(1.0)
+    q: float = positive(10.0)
+    gain: float = 0.0
+
+    def discrete(self, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """ZOH-discretized band-pass (unit gain at resonance) as lfilter coefficients."""
+        w = 2 * math.pi * self.frequency_hz
+        num, den = [w / self.q, 0.0], [1.0, w / self.q, w * w]
+        b, a, _ = cont2discrete((num, den), dt_s, method="zoh")
+        return np.ravel(b), np.ravel(a)
+
+    def response(self, phi_u: np.ndarray, static_m_per_rad: float, sig: Signals) -> np.ndarray:
+        b, a = self.discrete(sig.dt_s)
+        return self.gain * static_m_per_rad * lfilter(b, a, phi_u - phi_u[0])
+
+    def scale(self, key: str) -> float:
+        if key == "frequency_hz":
+            return self.frequency_hz / 200
+        if key == "q":
+            return self.q / 5
+        return abs(self.gain) or 0.01
+
+    def bounds(self, key: str) -> tuple[float, float]:
+        if key == "frequency_hz":
+            return (1e-3, 1e6)
+        return (0.5, 1e4) if key == "q" else (-math.inf, math.inf)
+
+    def describe(self) -> str:
+        return (f"extra resonance at {self.frequency_hz:.4g} Hz, Q {self.q:.3g}, "
+                f"{abs(self.gain) * 100:.3g}% of the static response at its peak")
+
+    def band_hz(self) -> tuple[float, float]:
+        return (self.frequency_hz / 1.5, self.frequency_hz * 1.5)
+
+    @classmethod
+    def guesses(cls, ev: Evidence) -> list[Effect]:
+        nyquist = 0.5 / ev.sig.dt_s
+        starts = [cls(frequency_hz=f, q=q) for f in ev.peaks(0.02, 0.9 * nyquist)
+                  for q in (5.0, 30.0)]
+        return ev.best_linear(starts, "gain", keep=2)
+
+
+# -- sensor: true displacement -> reading -------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class SensorGainError(Effect):
+    """The sensor reads (1 + gain_error) times the true displacement (calibration error)."""
+
+    name: ClassVar[str] = "sensor_gain_error"
+    stage: ClassVar[Stage] = "sensor"
+    title: ClassVar[str] = "sensor gain error"
+    free: ClassVar[tuple[str, ...]] = ("gain_error",)
+    magnitude: ClassVar[str] = "gain_error"
+
+    gain_error: float = field(default=0.0, metadata={"gt": -1.0})
+
+    def apply(self, x: np.ndarray, sig: Signals) -> np.ndarray:
+        return (1.0 + self.gain_error) * x
+
+    def stepper(self, dt_s: float) -> Callable[[float, float], float]:
+        g = 1.0 + self.gain_error
+        return lambda v, t_s: g * v
+
+    def scale(self, key: str) -> float:
+        return 0.01
+
+    def describe(self) -> str:
+        return f"sensor gain error, reads {self.gain_error * 100:+.3g}%"
+
+    @classmethod
+    def guesses(cls, ev: Evidence) -> list[Effect]:
+        return ev.best_linear([cls(gain_error=0.01)], "gain_error", keep=1)
+
+
+@dataclass(frozen=True, slots=True)
+class SensorDrift(Effect):
+    """A steady drift of the sensor zero (electronics warming, a creeping target)."""
+
+    name: ClassVar[str] = "sensor_drift"
+    stage: ClassVar[Stage] = "sensor"
+    title: ClassVar[str] = "sensor drift"
+    free: ClassVar[tuple[str, ...]] = ("rate_m_per_s",)
+    magnitude: ClassVar[str] = "rate_m_per_s"
+
+    rate_m_per_s: float = 0.0
+
+    def apply(self, x: np.ndarray, sig: Signals) -> np.ndarray:
+        return x + self.rate_m_per_s * sig.t_s
+
+    def stepper(self, dt_s: float) -> Callable[[float, float], float]:
+        r = self.rate_m_per_s
+        return lambda v, t_s: v + r * t_s
+
+    def scale(self, key: str) -> float:
+        return abs(self.rate_m_per_s) or 1e-13
+
+    def describe(self) -> str:
+        return f"sensor drift, {self.rate_m_per_s * 3600e9:+.3g} nm/h"
+
+    def band_hz(self) -> tuple[float, float]:
+        return (1e-4, 1e-3)
+
+    @classmethod
+    def guesses(cls, ev: Evidence) -> list[Effect]:
+        return ev.best_linear([cls(rate_m_per_s=1e-12)], "rate_m_per_s", keep=1)
+
+
+@dataclass(frozen=True, slots=True)
+class AdcQuantization(Effect):
+    """Readings on a coarser lattice than the model's ADC: fewer effective bits, a lower
+    sensor gain, a DAQ range set too wide.
+
+    The simulator rounds the noisy signal to the lattice. Replay cannot know the noise, so
+    it predicts the *expected* reading: the lattice smoothed by Gaussian noise of
+    `replay_noise_m` at the quantizer's input, which is what a noisy signal hovering at a
+    step edge reads on average.
+    """
+
+    name: ClassVar[str] = "adc_quantization"
+    stage: ClassVar[Stage] = "sensor"
+    title: ClassVar[str] = "ADC quantization"
+    free: ClassVar[tuple[str, ...]] = ("step_m", "offset_m", "replay_noise_m")
+    magnitude: ClassVar[str] = "step_m"
+    linear: ClassVar[bool] = False
+
+    step_m: float = positive(1e-8)
+    offset_m: float = 0.0  # where the lattice sits: readings are offset_m + k step_m
+    replay_noise_m: float = non_negative(1e-9)
+
+    def apply(self, x: np.ndarray, sig: Signals) -> np.ndarray:
+        u = (x - self.offset_m) / self.step_m
+        m = np.floor(u + 0.5)
+        v = u - m  # in [-0.5, 0.5)
+        s = max(self.replay_noise_m / self.step_m, 1e-6)
+        e = np.zeros_like(v)
+        for j in range(int(6 * s) + 2):  # P(reading above / below the nearest level by j+1)
+            e += ndtr((v - j - 0.5) / s) - ndtr((-v - j - 0.5) / s)
+        return self.offset_m + self.step_m * (m + e)
+
+    def stepper(self, dt_s: float) -> Callable[[float, float], float]:
+        s, o = self.step_m, self.offset_m
+        return lambda v, t_s: o + s * math.floor((v - o) / s + 0.5)
+
+    def scale(self, key: str) -> float:
+        if key == "replay_noise_m":
+            return max(self.replay_noise_m, 0.01 * self.step_m) / 4
+        return self.step_m / 50
+
+    def bounds(self, key: str) -> tuple[float, float]:
+        if key == "step_m":
+            return (1e-15, math.inf)
+        return (0.0, math.inf) if key == "replay_noise_m" else (-math.inf, math.inf)
+
+    def describe(self) -> str:
+        return f"ADC quantization, step {self.step_m * 1e9:.4g} nm"
+
+    def band_hz(self) -> tuple[float, float]:
+        return (1e-3, 1e-2)
+
+    @classmethod
+    def guesses(cls, ev: Evidence) -> list[Effect]:
+        lattice = ev.lattice()
+        if lattice is None:
+            return []
+        return [cls(step_m=lattice[0], offset_m=lattice[1], replay_noise_m=ev.noise_std_m())]
+
+
+EFFECTS: dict[str, type[Effect]] = {
+    cls.name: cls
+    for cls in (PeriodicDisturbance, TemperatureCoupling, ActuatorDelay, ActuatorHysteresis,
+                ExtraResonance, SensorGainError, SensorDrift, AdcQuantization)
+}
+_ORDER = list(EFFECTS)
+
+
+@dataclass(frozen=True, slots=True)
+class EffectsParams:
+    """`[plant.effects]`: each table present adds that effect to the plant."""
+
+    periodic_disturbance: PeriodicDisturbance | None = None
+    temperature_coupling: TemperatureCoupling | None = None
+    actuator_delay: ActuatorDelay | None = None
+    actuator_hysteresis: ActuatorHysteresis | None = None
+    extra_resonance: ExtraResonance | None = None
+    sensor_gain_error: SensorGainError | None = None
+    sensor_drift: SensorDrift | None = None
+    adc_quantization: AdcQuantization | None = None
+
+    def __iter__(self) -> Iterator[Effect]:
+        """The effects present, in signal order."""
+        for name in _ORDER:
+            fx = getattr(self, name)
+            if fx is not None:
+                yield fx
+
+    def of(self, stage: Stage) -> list[Effect]:
+        return [fx for fx in self if fx.stage == stage]
+
+    def with_effect(self, fx: Effect) -> EffectsParams:
+        return EffectsParams(**{n: getattr(self, n) for n in _ORDER} | {fx.name: fx})
