@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 import control_socket  # beside this script, which Python puts first on sys.path
+import diagnose_speed
 
 from leveler.logwriter import LogWriter
 from leveler.settings import load_config
@@ -68,7 +69,8 @@ def main() -> int:
         print(f"{name:<34} {secs:9.2f} {ratio:10.2f}x {secs / samples * 1e6:10.2f}")
     results = {"duration_s": duration, "samples": samples,
                "rows": [{"what": n, "wall_s": s, "ratio": r} for n, s, r in rows],
-               "control_socket": control_socket.main()}
+               "control_socket": control_socket.main(),
+               "diagnose": diagnose_speed.main(duration)}
     (REPO / "bench" / "results.json").write_text(json.dumps(results, indent=2))
     return 0
 

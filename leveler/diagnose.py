@@ -132,6 +132,8 @@ def fit_effect(start: Effect, pred: Predictor, w: Whitener, meas: Measured) -> F
         c = w.whiten(pred.with_candidate(fx.replace(**{mag: unit})) - pred.base.y_m)
         cc = float(c @ c)
         beta = float(c @ white) / cc if cc > 0 else 0.0
+        lo_m, hi_m = fx.bounds(mag)
+        beta = min(max(beta * unit, lo_m), hi_m) / unit  # the optimum within the bounds
         return white - beta * c, fx.replace(**{mag: beta * unit})
 
     x = np.zeros(len(keys))
@@ -225,17 +227,21 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
         for _, f, cand in sorted(passed, key=lambda p: -p[0]):
             check = fit_effect(f.effect, pred, w_test, meas)
             if _stable(f.effect, check.effect):
-                chosen = (f, cand)
+                chosen = (f, cand, check)
                 break
             cand.note = (f"held-out part disagrees: {check.effect.magnitude} "
                          f"{getattr(check.effect, check.effect.magnitude):.3g}")
         if chosen is None:
             break
-        f, cand = chosen
+        f, cand, check = chosen
         cand.accepted = True
         w_whole = make_whitener(meas, pred, whole)
         final = fit_effect(f.effect, pred, w_whole, meas)
-        found.append(Found(final.effect, final.sigma, cand.deviance_test))
+        # The noise model's 1-sigma misses systematic errors; half the difference between
+        # the fits to the two parts of the log is an honest floor under it.
+        sigma = {k: math.hypot(v, 0.5 * f.effect.difference(check.effect, k))
+                 for k, v in final.sigma.items()}
+        found.append(Found(final.effect, sigma, cand.deviance_test))
         pred.rebase(pred.effects.with_effect(final.effect))
     return Diagnosis(found, pred.effects, gap_before, gap(meas, pred, whole), tried,
                      (float(meas.t_s[skip]), float(meas.t_s[-1])),
@@ -252,7 +258,8 @@ def residual(meas: Measured, pred: Predictor, span: slice) -> np.ndarray:
     return r - a @ coef
 
 
-def gap(meas: Measured, pred: Predictor, span: slice) -> dict[str, Any]:
+def gap(meas: Measured, pred: Predictor, span: slice,
+        bands_hz: dict[str, tuple[float, float]] = BANDS_HZ) -> dict[str, Any]:
     """Residual RMS overall and in the paper's bands (RMS and mean ASD per band)."""
     r = residual(meas, pred, span)
     y = meas.y_m[span] - meas.y_m[span].mean()
@@ -265,7 +272,7 @@ def gap(meas: Measured, pred: Predictor, span: slice) -> dict[str, Any]:
     df = f[1] - f[0]
     bands: dict[str, float | None] = {}
     asd: dict[str, float | None] = {}
-    for name, (lo, hi) in BANDS_HZ.items():
+    for name, (lo, hi) in bands_hz.items():
         sel = (f >= lo) & (f < hi)
         if np.count_nonzero(sel) < 2:
             bands[name] = asd[name] = None

@@ -41,14 +41,31 @@ class Evidence:
         threshold = math.log(len(z)) + _LINE_Z
         idx = np.flatnonzero((f >= fmin_hz) & (f <= fmax_hz) & (z > threshold))
         found: list[float] = []
+
+        def harmonic(fx: float) -> bool:  # of a line already found (refined to ~df/10)
+            return any(abs(fx - h * g) <= df * (2.0 + 0.1 * h)
+                       for g in found for h in range(1, int(fx / g) + 2))
+
         for k in idx[np.argsort(z[idx])[::-1]]:
-            fk = float(f[k])
-            if any(abs(fk - h * g) <= 2.5 * df * h for g in found for h in range(1, 11)):
+            if harmonic(float(f[k])):
                 continue
-            found.append(self._refine(k))
+            fk = self._refine(self._fundamental(int(k), threshold))
+            if harmonic(fk):
+                continue
+            found.append(fk)
             if len(found) >= most:
                 break
-        return found
+        return sorted(set(found))
+
+    def _fundamental(self, k: int, threshold: float) -> int:
+        """The lowest significant subharmonic of bin k: a sawtooth's second or third
+        harmonic can stand out more than its fundamental."""
+        for div in (5, 4, 3, 2):
+            j = round(k / div)
+            if j >= 2 and self._z[max(j - 1, 1):j + 2].max() > threshold:
+                lo = max(j - 1, 1)
+                return lo + int(np.argmax(self._z[lo:j + 2]))
+        return k
 
     def _refine(self, k: int) -> float:
         """Line frequency between bins: the centroid of the power around the peak."""
@@ -73,7 +90,8 @@ class Evidence:
             cc = float(c @ c)
             if not cc > 0 or not math.isfinite(cc):
                 continue
-            beta = float(c @ self.white) / cc
+            lo, hi = fx.bounds(amp_key)
+            beta = min(max(float(c @ self.white) / cc * unit, lo), hi) / unit
             e = self.white - beta * c
             scored.append((float(e @ e), fx.replace(**{amp_key: beta * unit})))
         scored.sort(key=lambda s: s[0])

@@ -2,9 +2,9 @@
 
 The truth plant is the nominal one plus one effect (or nothing, for the null case); the
 log is written by the real loop and log writer, and carries the *nominal* config as its
-model, as a lab's log carries the model the lab believes. An optional square-wave dither
-on the actuator (as the paper's tilt modulation) excites actuator-side effects that a
-quiet closed loop would never show.
+model, as a lab's log carries the model the lab believes. An optional square or triangle
+wave on the actuator (as the paper's tilt modulation) excites actuator-side effects that
+a quiet closed loop would never show.
 """
 
 from __future__ import annotations
@@ -27,8 +27,10 @@ from leveler.stand import open_stand
 class DitheredActuator:
     """Adds a square wave to every command: excitation the log records as applied_v."""
 
-    def __init__(self, inner: Actuator, amplitude_v: float, period_s: float) -> None:
+    def __init__(self, inner: Actuator, amplitude_v: float, period_s: float,
+                 shape: str = "square") -> None:
         self.inner, self.amplitude_v, self.period_s = inner, amplitude_v, period_s
+        self.shape = shape
 
     @property
     def safe_v(self) -> float:
@@ -44,14 +46,17 @@ class DitheredActuator:
         self.inner.make_safe()
 
     def write(self, command_v: float, t_s: float) -> float:
-        half = math.fmod(t_s, self.period_s) < 0.5 * self.period_s
-        return self.inner.write(command_v + (self.amplitude_v if half else -self.amplitude_v),
-                                t_s)
+        frac = math.fmod(t_s, self.period_s) / self.period_s
+        if self.shape == "triangle":  # slow reversals: what shows a hysteresis loop's width
+            level = 1.0 - 4.0 * abs(frac - 0.5)
+        else:
+            level = 1.0 if frac < 0.5 else -1.0
+        return self.inner.write(command_v + self.amplitude_v * level, t_s)
 
 
 def make_measured(out: str | Path, nominal: Config, nominal_text: str, effect: Effect | None,
                   *, duration_s: float, seed: int, dither_v: float = 0.0,
-                  dither_period_s: float = 60.0) -> None:
+                  dither_period_s: float = 60.0, dither_shape: str = "square") -> None:
     """Write a closed-loop log of the truth plant (nominal + `effect`) to `out`."""
     effects = EffectsParams() if effect is None else EffectsParams().with_effect(effect)
     truth = dataclasses.replace(nominal, plant=dataclasses.replace(nominal.plant,
@@ -61,7 +66,7 @@ def make_measured(out: str | Path, nominal: Config, nominal_text: str, effect: E
     stand.connect()
     actuator: Actuator = stand.actuator
     if dither_v > 0:
-        actuator = DitheredActuator(actuator, dither_v, dither_period_s)
+        actuator = DitheredActuator(actuator, dither_v, dither_period_s, dither_shape)
     meta = {"config": nominal_text, "version": __version__, "seed": str(seed),
             "mode": "hidden-effect test data", "duration_s": repr(duration_s)}
     with LogWriter(out, truth=True, metadata=meta) as writer:

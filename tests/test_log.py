@@ -369,7 +369,7 @@ def test_writer_thread_failure_surfaces_as_log_error(tmp_path: Path) -> None:
 
 def test_closed_log_and_disabled_truth_refuse(tmp_path: Path) -> None:
     w = LogWriter(tmp_path / "a.mcap")
-    with pytest.raises(LogError, match="truth topic not enabled"):
+    with pytest.raises(LogError, match="topic not enabled"):
         w.truth(make_truth(0, random.Random(5)), T0_NS)
     w.close()
     with pytest.raises(LogError, match="closed"):

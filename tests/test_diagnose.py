@@ -1,0 +1,191 @@
+"""diagnose on logs with one hidden effect, and on logs with none.
+
+Each case draws the effect's parameters at random from a physically plausible range (the
+draw is printed, so a failure can be rerun); the truth plant is the nominal one plus the
+effect, the log's model is the nominal one. diagnose must name the effect, recover its
+parameters within the stated tolerance and shrink the gap at least 3x in the band where
+the effect lives; on the null logs it must find nothing. The fast suite runs one draw of
+a few effects; `make test-slow` runs every effect with fresh random draws.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from leveler.cli import main
+from leveler.diagnose import diagnose, gap
+from leveler.hidden import make_measured
+from leveler.predict import Predictor, load_measured
+from leveler.settings import load_config
+from leveler.sim.effects import (
+    ActuatorDelay,
+    ActuatorHysteresis,
+    AdcQuantization,
+    Effect,
+    ExtraResonance,
+    PeriodicDisturbance,
+    SensorDrift,
+    SensorGainError,
+    TemperatureCoupling,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@dataclass
+class Case:
+    draw: Callable[[np.random.Generator], Effect]
+    hours: float
+    band_hz: tuple[float, float]  # where the effect lives: the gap must shrink 3x there
+    tolerance: dict[str, float]  # relative, per parameter
+    dither: dict[str, Any] = field(default_factory=dict)
+
+
+def _periodic(rng: np.random.Generator) -> Effect:
+    period = float(rng.uniform(120.0, 600.0))
+    return PeriodicDisturbance(shape=str(rng.choice(["sawtooth", "triangle", "sine"])),
+                               period_s=period, peak_to_peak_rad=float(rng.uniform(5e-8, 3e-7)),
+                               phase_s=float(rng.uniform(0.0, period)))
+
+
+_SQUARE = {"dither_v": 5.0, "dither_period_s": 60.0}
+CASES: dict[str, Case] = {
+    "periodic_disturbance": Case(_periodic, 3.0, (1e-3, 1e-2),
+                                 {"period_s": 0.01, "peak_to_peak_rad": 0.1}),
+    "temperature_coupling": Case(
+        lambda r: TemperatureCoupling(
+            tilt_per_kelvin_rad_per_k=float(r.choice([-1, 1]) * r.uniform(2e-6, 6e-6)),
+            lag_s=float(r.uniform(300.0, 2400.0))),
+        8.0, (1e-4, 1e-3), {"tilt_per_kelvin_rad_per_k": 0.15, "lag_s": 0.3}),
+    "actuator_delay": Case(lambda r: ActuatorDelay(delay_s=float(r.uniform(0.15, 1.0))),
+                           2.0, (0.1, 1.0), {"delay_s": 0.05}, _SQUARE),
+    "actuator_hysteresis": Case(
+        lambda r: ActuatorHysteresis(width_v=float(r.uniform(0.3, 1.5)),
+                                     fraction=float(r.uniform(0.1, 0.3))),
+        2.0, (1e-2, 1e-1), {"width_v": 0.25, "fraction": 0.25},
+        {"dither_v": 5.0, "dither_period_s": 120.0, "dither_shape": "triangle"}),
+    "extra_resonance": Case(
+        lambda r: ExtraResonance(frequency_hz=float(r.uniform(0.9, 3.5)),
+                                 q=float(r.uniform(8.0, 40.0)), gain=float(r.uniform(0.05, 0.3))),
+        2.0, (0.8, 5.0), {"frequency_hz": 0.02, "q": 0.25, "gain": 0.2}, _SQUARE),
+    "sensor_gain_error": Case(
+        lambda r: SensorGainError(gain_error=float(r.choice([-1, 1]) * r.uniform(0.03, 0.15))),
+        2.0, (1e-2, 1e-1), {"gain_error": 0.1}, _SQUARE),
+    "sensor_drift": Case(
+        lambda r: SensorDrift(rate_m_per_s=float(r.choice([-1, 1]) * r.uniform(1.5e-12, 5e-12))),
+        6.0, (1e-4, 1e-3), {"rate_m_per_s": 0.3}),
+    "adc_quantization": Case(
+        lambda r: AdcQuantization(step_m=float(r.uniform(1.2e-8, 4e-8)),
+                                  offset_m=float(r.uniform(0.0, 1e-8))),
+        2.0, (1e-3, 1e-2), {"step_m": 0.05}),
+}
+FAST = ("periodic_disturbance", "adc_quantization")
+
+
+def _run(name: str, seed: int, tmp_path: Path) -> None:
+    case = CASES[name]
+    rng = np.random.default_rng(seed)
+    truth = case.draw(rng)
+    print(f"case {name} seed {seed}: {truth}")
+    cfg, text = load_config(REPO / "config" / "sim.toml")
+    log = tmp_path / f"{name}.mcap"
+    make_measured(log, cfg, text, truth, duration_s=case.hours * 3600, seed=seed,
+                  **case.dither)
+    meas = load_measured(log)
+    d = diagnose(meas)
+    print([str(f.effect) for f in d.effects])
+    assert d.effects, f"{name} not found"
+    found = d.effects[0].effect
+    assert found.name == name
+    for key, tol in case.tolerance.items():
+        want, got = getattr(truth, key), getattr(found, key)
+        assert abs(got - want) <= tol * abs(want), f"{key}: fitted {got:.4g}, true {want:.4g}"
+    nominal = Predictor(meas.config.plant, meas)
+    fitted = Predictor(meas.config.plant, meas)
+    fitted.rebase(d.model)
+    span = slice(int((d.span_s[0] - meas.t_s[0]) / meas.dt_s), None)
+    band = {"effect": case.band_hz}
+    before = gap(meas, nominal, span, band)["band_rms_m"]["effect"]
+    after = gap(meas, fitted, span, band)["band_rms_m"]["effect"]
+    assert before > 3 * after, f"gap {before:.3g} -> {after:.3g} m in {case.band_hz} Hz"
+
+
+@pytest.mark.parametrize("name", FAST)
+def test_hidden_effect_is_found_fast(name: str, tmp_path: Path) -> None:
+    _run(name, 11 + FAST.index(name), tmp_path)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("draw", range(2))
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_hidden_effect_is_found(name: str, draw: int, tmp_path: Path) -> None:
+    seed = int(np.random.SeedSequence().entropy % 100_000)  # fresh every run, printed
+    _run(name, seed + draw, tmp_path)
+
+
+def _null(tmp_path: Path, seed: int, hours: float, **dither: Any) -> list[str]:
+    cfg, text = load_config(REPO / "config" / "sim.toml")
+    log = tmp_path / "null.mcap"
+    make_measured(log, cfg, text, None, duration_s=hours * 3600, seed=seed, **dither)
+    return [str(f.effect) for f in diagnose(load_measured(log)).effects]
+
+
+def test_nothing_is_invented_on_a_quiet_night(tmp_path: Path) -> None:
+    assert _null(tmp_path, 21, 3.0) == []
+
+
+def test_nothing_is_invented_under_modulation(tmp_path: Path) -> None:
+    assert _null(tmp_path, 22, 2.0, **_SQUARE) == []
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", range(31, 37))
+def test_null_logs_stay_empty(seed: int, tmp_path: Path) -> None:
+    dither = _SQUARE if seed % 2 else {}
+    assert _null(tmp_path, seed, 4.0, **dither) == []
+
+
+def test_cli_json_contract_report_and_fitted_model(tmp_path: Path,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    cfg, text = load_config(REPO / "config" / "sim.toml")
+    truth = PeriodicDisturbance(shape="sawtooth", period_s=287.0, peak_to_peak_rad=2.4e-7,
+                                phase_s=31.0)
+    log = tmp_path / "night.mcap"
+    make_measured(log, cfg, text, truth, duration_s=3 * 3600, seed=3)
+    assert main(["diagnose", str(log), "--json", "--report", str(tmp_path / "rep")]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert set(out) >= {"effects", "gap_before", "gap_after", "model_out"}
+    assert [e["name"] for e in out["effects"]] == ["periodic_disturbance"]
+    assert out["effects"][0]["params"]["shape"] == "sawtooth"
+    assert out["model_out"] == str(tmp_path / "night.fitted.toml")
+    for name in ("summary.md", "residual_asd.png", "timeseries.png"):
+        assert (tmp_path / "rep" / name).stat().st_size > 1000
+    assert "periodic disturbance" in (tmp_path / "rep" / "summary.md").read_text()
+    # The fitted model is a plain config: replay uses it and agrees better.
+    assert main(["replay", str(log), "--json"]) == 0
+    before = json.loads(capsys.readouterr().out)
+    assert main(["replay", str(log), "--model", out["model_out"], "--json"]) == 0
+    after = json.loads(capsys.readouterr().out)
+    assert after["rms_m"] < before["rms_m"] / 5
+    assert after["band_rms_m"]["1-10 mHz"] < before["band_rms_m"]["1-10 mHz"] / 10
+    # ... and so does the simulator.
+    fitted, _ = load_config(out["model_out"])
+    assert math.isclose(fitted.plant.effects.periodic_disturbance.period_s, 287.0, rel_tol=1e-3)
+
+
+def test_cli_says_so_when_nothing_is_missing(tmp_path: Path,
+                                             capsys: pytest.CaptureFixture[str]) -> None:
+    cfg, text = load_config(REPO / "config" / "sim.toml")
+    log = tmp_path / "quiet.mcap"
+    make_measured(log, cfg, text, None, duration_s=2 * 3600, seed=4)
+    assert main(["diagnose", str(log)]) == 0
+    assert "no missing effect found" in capsys.readouterr().out
+    assert not (tmp_path / "quiet.fitted.toml").exists()

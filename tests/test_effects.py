@@ -1,0 +1,102 @@
+"""Each named effect means the same thing to the simulator and to replay.
+
+A log simulated with an effect, replayed against a model that has the same effect, must
+leave only the sensor's own noise: if the per-sample and the vectorized forms of an effect
+disagreed, the residual would show it (and diagnose would chase a ghost).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from leveler.config import ConfigError, build
+from leveler.diagnose import gap
+from leveler.hidden import make_measured
+from leveler.predict import Predictor, load_measured
+from leveler.settings import Config, load_config
+from leveler.sim.effects import (
+    EFFECTS,
+    ActuatorDelay,
+    ActuatorHysteresis,
+    AdcQuantization,
+    Effect,
+    EffectsParams,
+    ExtraResonance,
+    PeriodicDisturbance,
+    SensorDrift,
+    SensorGainError,
+    TemperatureCoupling,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+
+SAMPLES: list[Effect] = [
+    PeriodicDisturbance(shape="triangle", period_s=123.0, peak_to_peak_rad=1e-7, phase_s=17.0),
+    TemperatureCoupling(tilt_per_kelvin_rad_per_k=5e-6, lag_s=300.0),
+    ActuatorDelay(delay_s=0.37),
+    ActuatorHysteresis(width_v=0.8, fraction=0.3),
+    ExtraResonance(frequency_hz=1.3, q=15.0, gain=0.3),
+    SensorGainError(gain_error=-0.07),
+    SensorDrift(rate_m_per_s=3e-12),
+    AdcQuantization(step_m=3e-8, offset_m=2e-9, replay_noise_m=1.1e-9),
+]
+
+
+def test_every_effect_has_a_sample_here() -> None:
+    assert sorted(fx.name for fx in SAMPLES) == sorted(EFFECTS)
+
+
+def _with(cfg: Config, fx: Effect | None) -> Config:
+    effects = EffectsParams() if fx is None else EffectsParams().with_effect(fx)
+    return dataclasses.replace(cfg, plant=dataclasses.replace(cfg.plant, effects=effects))
+
+
+@pytest.fixture(scope="module")
+def nominal() -> tuple[Config, str]:
+    return load_config(REPO / "config" / "sim.toml")
+
+
+@pytest.mark.parametrize("fx", SAMPLES, ids=lambda fx: fx.name)
+def test_replay_with_the_true_effect_leaves_only_noise(
+        fx: Effect, nominal: tuple[Config, str], tmp_path: Path) -> None:
+    cfg, text = nominal
+    log = tmp_path / "m.mcap"
+    # A drift needs longer than the thermal lag, whose unknown start replay fits away.
+    duration_s = 7200.0 if isinstance(fx, SensorDrift) else 1800.0
+    make_measured(log, cfg, text, fx, duration_s=duration_s, seed=5, dither_v=4.0,
+                  dither_period_s=40.0)
+    meas = load_measured(log)  # the log's model is the nominal one: without the effect
+    span = slice(1200, None)
+    without = gap(meas, Predictor(meas.config.plant, meas), span)["rms_m"]
+    meas.config = _with(cfg, fx)
+    with_fx = gap(meas, Predictor(meas.config.plant, meas), span)["rms_m"]
+    noise = cfg.plant.sensor.noise_m_per_rthz * np.sqrt(0.5 * cfg.loop.rate_hz)
+    lsb = cfg.plant.sensor.lsb_m
+    floor = np.hypot(noise, lsb / np.sqrt(12))
+    if isinstance(fx, AdcQuantization):
+        floor = np.hypot(floor, fx.step_m / np.sqrt(12))  # dither cannot be predicted
+    assert with_fx < 1.5 * floor, (without, with_fx, floor)
+    assert without > 1.3 * with_fx  # and the effect was there to be seen
+
+
+def test_effects_load_from_a_config_table(tmp_path: Path) -> None:
+    cfg = build(Config, {"plant": {"effects": {
+        "periodic_disturbance": {"shape": "sine", "period_s": 60.0,
+                                 "peak_to_peak_rad": 1e-8},
+        "actuator_delay": {"delay_s": 0.2}}}})
+    names = [fx.name for fx in cfg.plant.effects]
+    assert names == ["periodic_disturbance", "actuator_delay"]
+
+
+@pytest.mark.parametrize(("table", "needle"), [
+    ({"periodic_disturbance": {"shape": "square"}}, "plant.effects.periodic_disturbance.shape"),
+    ({"actuator_delay": {"delay_s": -1.0}}, "plant.effects.actuator_delay.delay_s"),
+    ({"no_such_effect": {}}, "plant.effects.no_such_effect: unknown key"),
+])
+def test_bad_effect_tables_name_the_key(table: dict, needle: str) -> None:
+    with pytest.raises(ConfigError, match=needle.replace(".", r"\.")):
+        build(Config, {"plant": {"effects": table}})
