@@ -29,7 +29,7 @@ from leveler.predict import Measured, Predictor, pendulum_filter
 from leveler.sim.effects import EFFECTS, Effect, EffectsParams
 from leveler.whittle import ENBW_BINS, Whitener, deviance
 
-_MIN_SHARE = 0.005
+_MIN_NOISE_SHARE = 0.5
 BANDS_HZ: dict[str, tuple[float, float]] = {
     "0.1-1 mHz": (1e-4, 1e-3),
     "1-10 mHz": (1e-3, 1e-2),
@@ -96,8 +96,7 @@ def make_whitener(meas: Measured, pred: Predictor, span: slice) -> Whitener:
     n = len(meas.y_m)
     length = len(range(*span.indices(n)))
     f = np.fft.rfftfreq(length, meas.dt_s)
-    nuisance = [v for v in (pred.thermal_transient(),) if v is not None]
-    w = Whitener(span, n, meas.dt_s, _pendulum_shape(pred, meas, f), nuisance)
+    w = Whitener(span, n, meas.dt_s, _pendulum_shape(pred, meas, f))
     w.fit_noise(meas.y_m - pred.base.y_m)
     return w
 
@@ -138,12 +137,19 @@ def fit_effect(start: Effect, pred: Predictor, w: Whitener, meas: Measured) -> F
 
     x = np.zeros(len(keys))
     if len(keys) == 1 and theta0[0] > 0:
-        # One shape parameter (a width, a lag, a delay): a bracketed scalar search over a
-        # factor of 8 either way; least squares alone stalls on the ridges hysteresis has.
-        a = (max(lo[0], theta0[0] / 8) - theta0[0]) / scale[0]
-        b = (min(hi[0], theta0[0] * 8) - theta0[0]) / scale[0]
-        best = minimize_scalar(lambda v: float(np.sum(solve(np.array([v]))[0] ** 2)),
-                               bounds=(a, b), method="bounded", options={"xatol": 1e-3})
+        # One shape parameter (a width, a lag, a delay): a log-spaced scan over a factor
+        # of 8 either way, then a bracketed search around the best point. Least squares
+        # alone stalls on hysteresis' ridges; a delay has local minima a pendulum period
+        # apart.
+        grid = np.geomspace(max(lo[0], theta0[0] / 8), min(hi[0], theta0[0] * 8), 25)
+        xs = (grid - theta0[0]) / scale[0]
+
+        def cost(v: float) -> float:
+            return float(np.sum(solve(np.array([v]))[0] ** 2))
+
+        i = int(np.argmin([cost(v) for v in xs]))
+        best = minimize_scalar(cost, bounds=(xs[max(i - 1, 0)], xs[min(i + 1, len(xs) - 1)]),
+                               method="bounded", options={"xatol": 1e-4})
         x = np.array([best.x])
     if keys:
         res = least_squares(lambda v: solve(v)[0],
@@ -194,6 +200,8 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
     found: list[Found] = []
     tried: list[Candidate] = []
     temperature = meas.sig.temperature_k is not None
+    se = pred.params.sensor
+    noise = math.hypot(se.noise_m_per_rthz * math.sqrt(0.5 / meas.dt_s), se.lsb_m / math.sqrt(12))
     while len(found) < max_effects:
         w_train = make_whitener(meas, pred, train)
         w_test = make_whitener(meas, pred, test)
@@ -218,11 +226,16 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
                                  deviance(cost0_test, cost_test),
                                  k * math.log(2 * len(w_test.f_hz)))
                 tried.append(cand)
-                # Statistically real is not enough: it must also explain a share of the
-                # held-out misfit worth naming (a 70 pm drift over a night is not a finding).
-                relevant = cost0_test - cost_test > _MIN_SHARE * cost0_test
-                if cand.deviance_test > cand.penalty and relevant:
+                # Statistically real is not enough: it must also move the reading by a
+                # share of the sensor's own noise (a 70 pm drift over a night is not a
+                # finding, however well the fit pins it down).
+                if cand.deviance_test <= cand.penalty:
+                    continue
+                size = float(np.std(pred.physical_change(f.effect)[test]))
+                if size > _MIN_NOISE_SHARE * noise:
                     passed.append((cand.deviance_test - cand.penalty, f, cand))
+                else:
+                    cand.note = f"changes the reading by only {size * 1e9:.2g} nm rms"
         chosen = None
         for _, f, cand in sorted(passed, key=lambda p: -p[0]):
             check = fit_effect(f.effect, pred, w_test, meas)
@@ -249,13 +262,10 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
 
 
 def residual(meas: Measured, pred: Predictor, span: slice) -> np.ndarray:
-    """Measured minus predicted on `span`, with the nuisances (offset, thermal lag start)
-    removed by least squares: what the model leaves unexplained."""
+    """Measured minus predicted on `span`, offset removed: what the model leaves
+    unexplained."""
     r = (meas.y_m - pred.base.y_m)[span]
-    cols = [np.ones_like(r)] + [v[span] for v in (pred.thermal_transient(),) if v is not None]
-    a = np.array(cols).T
-    coef, *_ = np.linalg.lstsq(a, r, rcond=None)
-    return r - a @ coef
+    return r - r.mean()
 
 
 def gap(meas: Measured, pred: Predictor, span: slice,

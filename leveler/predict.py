@@ -154,6 +154,7 @@ class Predictor:
         self._b, self._a = pendulum_filter(params, meas.dt_s)
         self._amp = pe.amplification
         self.nominal_tilt = self._nominal_tilt()
+        self._transient = self.thermal_transient()
         self.effects = params.effects
         self.base = self.predict(self.effects)
 
@@ -203,7 +204,19 @@ class Predictor:
         x = self.pend(phi)
         for fx in effects.of("response"):
             x = x + fx.response(phi_u, self.static_m_per_rad, sig)  # type: ignore[attr-defined]
+        x = x + self._start_state(x)
         return Prediction(x, self._sensor(x, effects), phi_u)
+
+    def _start_state(self, x: np.ndarray) -> np.ndarray | float:
+        """The thermal lag's unknown state at the log's start, fitted by least squares (with
+        an offset) to what this prediction leaves: it decays within a few lags, and fitted
+        once here it cannot pass for a drift in a later stretch of the log."""
+        if self._transient is None:
+            return 0.0
+        r = self.meas.y_m - x
+        a = np.column_stack([np.ones_like(r), self._transient])
+        coef, *_ = np.linalg.lstsq(a, r, rcond=None)
+        return coef[1] * self._transient
 
     def _sensor(self, x: np.ndarray, effects: EffectsParams) -> np.ndarray:
         """The sensor stage, fed the displacement aligned with the readings: the table's
@@ -232,3 +245,10 @@ class Predictor:
             x = x + fx.response(self.base.phi_u_rad, self.static_m_per_rad,  # type: ignore[attr-defined]
                                 self.meas.sig)
         return self._sensor(x, merged)
+
+    def physical_change(self, fx: Effect) -> np.ndarray:
+        """How much adding `fx` changes the displacement (or, for a sensor effect, the
+        reading): its size, undistorted by a coarse quantizer downstream."""
+        if fx.stage == "sensor":
+            return self.with_candidate(fx) - self.base.y_m
+        return self.predict(self.effects.with_effect(fx)).x_m - self.base.x_m

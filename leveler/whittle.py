@@ -9,8 +9,8 @@ parametric noise spectrum fitted to it (Whittle's approximation of the Gaussian
 likelihood). Narrow lines and bumps the smooth spectrum cannot follow are exactly what
 stands out then, and a candidate effect is scored by how much of that it removes.
 
-Nuisances (a constant offset, the thermal lag's unknown initial state) are projected out
-of every whitened residual, so no effect gets credit for them.
+The unknown constant offset is removed from each span before the window, so no effect
+gets credit for it.
 """
 
 from __future__ import annotations
@@ -92,8 +92,8 @@ class NoiseSpectrum:
 class Whitener:
     """Maps a time-domain residual on one span to a real vector of unit-variance numbers."""
 
-    def __init__(self, span: slice, n_total: int, dt_s: float, pendulum_response: np.ndarray,
-                 nuisance: list[np.ndarray]) -> None:
+    def __init__(self, span: slice, n_total: int, dt_s: float,
+                 pendulum_response: np.ndarray) -> None:
         """`pendulum_response`: |H(f)/H(0)|^2 of the pendulum on this span's rfft grid."""
         self.span = span
         self.n = len(range(*span.indices(n_total)))
@@ -103,8 +103,6 @@ class Whitener:
         self.norm = float(np.sum(self.window**2)) / (2 * dt_s)
         self.spectrum = NoiseSpectrum(self.f_hz, pendulum_response)
         self.weight = np.ones(len(self.f_hz))
-        self._nuisance_raw = nuisance
-        self._q: np.ndarray | None = None
 
     def transform(self, x: np.ndarray) -> np.ndarray:
         """rfft of the Hann-windowed span of a full-length series."""
@@ -122,19 +120,14 @@ class Whitener:
         self.psd = s
         self.weight = 1.0 / np.sqrt(s * self.norm)
         self.weight[0] = 0.0  # the mean: removed before the window, carries nothing
-        cols = [self._stack(self.transform(v)) for v in self._nuisance_raw]
-        self._q = np.linalg.qr(np.array(cols).T)[0] if cols else None
 
     def _stack(self, spec: np.ndarray) -> np.ndarray:
         w = spec * self.weight
         return np.concatenate([w.real, w.imag])
 
     def whiten(self, residual: np.ndarray) -> np.ndarray:
-        """Whitened residual with the nuisances projected out."""
-        e = self._stack(self.transform(residual))
-        if self._q is not None:
-            e = e - self._q @ (self._q.T @ e)
-        return e
+        """Whitened residual: about unit variance per number where the noise model holds."""
+        return self._stack(self.transform(residual))
 
     def cost(self, residual: np.ndarray) -> float:
         """Sum of squared whitened residuals: under the noise model, about one per bin."""

@@ -403,8 +403,9 @@ class ExtraResonance(Effect):
 
     def bounds(self, key: str) -> tuple[float, float]:
         if key == "frequency_hz":
-            return (1e-3, 1e6)
-        return (2.0, 1e4) if key == "q" else (-math.inf, math.inf)
+            return (0.02, 1e6)  # slower "modes" are drifts and the loop's own response
+        # A mode larger than the pendulum's whole static response would be the pendulum.
+        return (2.0, 1e4) if key == "q" else (-1.0, 1.0)
 
     def describe(self) -> str:
         return (f"extra resonance at {self.frequency_hz:.4g} Hz, Q {self.q:.3g}, "
@@ -416,8 +417,11 @@ class ExtraResonance(Effect):
     @classmethod
     def guesses(cls, ev: Evidence) -> list[Effect]:
         nyquist = 0.5 / ev.sig.dt_s
+        f0 = ev.pred.params.pendulum.natural_frequency_hz
+        # Near the pendulum's own resonance a line means its frequency or Q is off (the
+        # baseline), not a second mode.
         starts = [cls(frequency_hz=f, q=q) for f in ev.peaks(0.02, 0.9 * nyquist)
-                  for q in (5.0, 30.0)]
+                  if abs(f / f0 - 1) > 0.2 for q in (5.0, 30.0)]
         return ev.best_linear(starts, "gain", keep=2)
 
 
@@ -445,6 +449,9 @@ class SensorGainError(Effect):
 
     def scale(self, key: str) -> float:
         return 0.01
+
+    def bounds(self, key: str) -> tuple[float, float]:
+        return (-0.5, 0.5)  # beyond that it is a different sensor, not a calibration error
 
     def describe(self) -> str:
         return f"sensor gain error, reads {self.gain_error * 100:+.3g}%"
