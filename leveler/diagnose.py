@@ -250,9 +250,10 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
         cand.accepted = True
         w_whole = make_whitener(meas, pred, whole)
         final = fit_effect(f.effect, pred, w_whole, meas)
-        # The noise model's 1-sigma misses systematic errors; half the difference between
-        # the fits to the two parts of the log is an honest floor under it.
-        sigma = {k: math.hypot(v, 0.5 * f.effect.difference(check.effect, k))
+        # The noise model's 1-sigma misses systematic errors; how far the fits to the two
+        # parts of the log, and to the whole, disagree is an honest floor under it.
+        sigma = {k: math.hypot(v, 0.5 * f.effect.difference(check.effect, k),
+                               final.effect.difference(f.effect, k))
                  for k, v in final.sigma.items()}
         found.append(Found(final.effect, sigma, cand.deviance_test))
         pred.rebase(pred.effects.with_effect(final.effect))

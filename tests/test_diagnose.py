@@ -81,7 +81,7 @@ CASES: dict[str, Case] = {
         2.0, (1e-2, 1e-1), {"gain_error": 0.1}, _SQUARE),
     "sensor_drift": Case(
         lambda r: SensorDrift(rate_m_per_s=float(r.choice([-1, 1]) * r.uniform(1.5e-12, 5e-12))),
-        6.0, (1e-4, 1e-3), {"rate_m_per_s": 0.3}),
+        6.0, (1e-9, 1e-3), {"rate_m_per_s": 0.3}),  # a trend: below 1 mHz, to the lowest bin
     "adc_quantization": Case(
         lambda r: AdcQuantization(step_m=float(r.uniform(1.2e-8, 4e-8)),
                                   offset_m=float(r.uniform(0.0, 1e-8))),

@@ -551,7 +551,15 @@ class AdcQuantization(Effect):
         lattice = ev.lattice()
         if lattice is None:
             return []
-        return [cls(step_m=lattice[0], offset_m=lattice[1], replay_noise_m=ev.noise_std_m())]
+        step, offset = lattice
+        # The readings give the lattice, but where the model's displacement sits on it is
+        # only known to within a step (the loop hovers at a step edge): scan it, since a
+        # fit cannot cross the flat stretches between edges. The model's own ADC rounds
+        # the levels, so the step is scanned a little too.
+        starts = [cls(step_m=step * k, offset_m=offset + step * j / 16,
+                      replay_noise_m=ev.noise_std_m())
+                  for k in (0.97, 1.0, 1.03) for j in range(-8, 8)]
+        return ev.best_linear(starts, None, keep=1)
 
 
 EFFECTS: dict[str, type[Effect]] = {
