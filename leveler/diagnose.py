@@ -248,8 +248,14 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
             break
         f, cand, check = chosen
         cand.accepted = True
+        # Refit on the whole log with the noise spectrum of what the effect leaves: the
+        # spectrum fitted before it was found has soaked up part of a broadband effect
+        # (a temperature coupling is red), which would blunt the fit where it matters.
         w_whole = make_whitener(meas, pred, whole)
-        final = fit_effect(f.effect, pred, w_whole, meas)
+        final = f
+        for _ in range(2):
+            w_whole.fit_noise(meas.y_m - pred.with_candidate(final.effect))
+            final = fit_effect(final.effect, pred, w_whole, meas)
         # The noise model's 1-sigma misses systematic errors; how far the fits to the two
         # parts of the log, and to the whole, disagree is an honest floor under it.
         sigma = {k: math.hypot(v, 0.5 * f.effect.difference(check.effect, k),

@@ -204,19 +204,18 @@ class Predictor:
         x = self.pend(phi)
         for fx in effects.of("response"):
             x = x + fx.response(phi_u, self.static_m_per_rad, sig)  # type: ignore[attr-defined]
-        x = x + self._start_state(x)
+        if self._transient is not None:
+            x = x + self._start_state(self._sensor(x, effects)) * self._transient
         return Prediction(x, self._sensor(x, effects), phi_u)
 
-    def _start_state(self, x: np.ndarray) -> np.ndarray | float:
+    def _start_state(self, y_pred: np.ndarray) -> float:
         """The thermal lag's unknown state at the log's start, fitted by least squares (with
-        an offset) to what this prediction leaves: it decays within a few lags, and fitted
-        once here it cannot pass for a drift in a later stretch of the log."""
-        if self._transient is None:
-            return 0.0
-        r = self.meas.y_m - x
+        an offset) to what the whole prediction, sensor effects included, leaves: it decays
+        within a few lags, and fitted once here it cannot pass for a drift later on."""
+        r = self.meas.y_m - y_pred
         a = np.column_stack([np.ones_like(r), self._transient])
         coef, *_ = np.linalg.lstsq(a, r, rcond=None)
-        return coef[1] * self._transient
+        return float(coef[1])
 
     def _sensor(self, x: np.ndarray, effects: EffectsParams) -> np.ndarray:
         """The sensor stage, fed the displacement aligned with the readings: the table's

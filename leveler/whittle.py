@@ -113,9 +113,11 @@ class Whitener:
         return np.abs(self.transform(x)) ** 2 / self.norm
 
     def fit_noise(self, residual: np.ndarray) -> None:
-        """Fit the noise spectrum to this residual (bins 1.. ; bin 0 is the nuisance's)."""
+        """Fit the noise spectrum to this residual; bin 0 (the mean) carries nothing."""
         p = self.periodogram(residual)
-        use = np.arange(len(p)) >= 2
+        # The lowest bins are left out of the fit and get the fit's extrapolation: a trend
+        # (a drift) lives there, and fitted to them the 1/f^4 term would soak it up.
+        use = np.arange(len(p)) >= 4
         s = self.spectrum.fit(p, use)
         self.psd = s
         self.weight = 1.0 / np.sqrt(s * self.norm)

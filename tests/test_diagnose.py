@@ -74,7 +74,7 @@ CASES: dict[str, Case] = {
         {"dither_v": 5.0, "dither_period_s": 120.0, "dither_shape": "triangle"}),
     "extra_resonance": Case(
         lambda r: ExtraResonance(frequency_hz=float(r.uniform(0.9, 3.5)),
-                                 q=float(r.uniform(8.0, 40.0)), gain=float(r.uniform(0.05, 0.3))),
+                                 q=float(r.uniform(8.0, 40.0)), gain=float(r.uniform(0.1, 0.4))),
         2.0, None, {"frequency_hz": 0.02, "q": 0.25, "gain": 0.2}, _SQUARE),
     "sensor_gain_error": Case(
         lambda r: SensorGainError(gain_error=float(r.choice([-1, 1]) * r.uniform(0.03, 0.15))),
@@ -83,9 +83,9 @@ CASES: dict[str, Case] = {
         lambda r: SensorDrift(rate_m_per_s=float(r.choice([-1, 1]) * r.uniform(1.5e-12, 5e-12))),
         6.0, (1e-9, 1e-3), {"rate_m_per_s": 0.3}),  # a trend: below 1 mHz, to the lowest bin
     "adc_quantization": Case(
-        lambda r: AdcQuantization(step_m=float(r.uniform(1.2e-8, 4e-8)),
+        lambda r: AdcQuantization(step_m=float(r.uniform(1.5e-8, 4e-8)),
                                   offset_m=float(r.uniform(0.0, 1e-8))),
-        2.0, (1e-3, 1e-2), {"step_m": 0.08}),
+        2.0, (1e-4, 1e-2), {"step_m": 0.08}),
 }
 FAST = ("periodic_disturbance", "adc_quantization")
 
