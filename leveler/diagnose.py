@@ -25,7 +25,7 @@ from scipy.optimize import least_squares, minimize_scalar
 from scipy.signal import freqz
 
 from leveler.evidence import Evidence
-from leveler.predict import Measured, Predictor, pendulum_filter
+from leveler.predict import Measured, Predictor, excitation_v, pendulum_filter
 from leveler.sim.effects import EFFECTS, Effect, EffectsParams
 from leveler.whittle import ENBW_BINS, Whitener, deviance
 
@@ -157,6 +157,7 @@ def fit_effect(start: Effect, pred: Predictor, w: Whitener, meas: Measured) -> F
                             diff_step=1e-3, max_nfev=40 * (len(keys) + 1), x0=x)
         x = res.x
     e, fitted = solve(x)
+    fitted = fitted.canonical()
     return Fit(fitted, _sigma(fitted, pred, w, meas, e), float(e @ e))
 
 
@@ -183,6 +184,19 @@ def _sigma(fx: Effect, pred: Predictor, w: Whitener, meas: Measured,
     return {k: float(s) for k, s in zip(keys, sig, strict=True)}
 
 
+def _actuator_excited(meas: Measured, pred: Predictor, span: slice) -> bool:
+    """Did anything but feedback move the actuator enough to be seen at the sensor?"""
+    exc = excitation_v(meas)
+    if exc is None:  # not a leveler log: the voltage may well be a modulation
+        return True
+    p = pred.params
+    kv = p.piezo.gain_m_per_v / p.platform.support_spacing_m
+    seen = pred.pend(kv * exc)[span]
+    se = p.sensor
+    noise = math.hypot(se.noise_m_per_rthz * math.sqrt(0.5 / meas.dt_s), se.lsb_m / math.sqrt(12))
+    return float(np.std(seen)) > 3 * noise
+
+
 def _stable(a: Effect, b: Effect) -> bool:
     """Same effect on both parts of the log: same sign, size within a factor of 2."""
     x, y = float(getattr(a, a.magnitude)), float(getattr(b, b.magnitude))
@@ -200,6 +214,7 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
     found: list[Found] = []
     tried: list[Candidate] = []
     temperature = meas.sig.temperature_k is not None
+    excited = temperature or _actuator_excited(meas, pred, whole)
     se = pred.params.sensor
     noise = math.hypot(se.noise_m_per_rthz * math.sqrt(0.5 / meas.dt_s), se.lsb_m / math.sqrt(12))
     while len(found) < max_effects:
@@ -213,6 +228,8 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
             if getattr(pred.effects, cls.name) is not None:
                 continue
             if cls.needs_temperature and not temperature:
+                continue
+            if cls.needs_excitation and not excited:
                 continue
             fits = []
             for guess in cls.guesses(ev):

@@ -60,11 +60,17 @@ class Evidence:
     def _fundamental(self, k: int, threshold: float) -> int:
         """The lowest significant subharmonic of bin k: a sawtooth's second or third
         harmonic can stand out more than its fundamental."""
+        z = self._z
         for div in (5, 4, 3, 2):
             j = round(k / div)
-            if j >= 2 and self._z[max(j - 1, 1):j + 2].max() > threshold:
-                lo = max(j - 1, 1)
-                return lo + int(np.argmax(self._z[lo:j + 2]))
+            if j < 4:
+                continue
+            lo = j - 1
+            peak = lo + int(np.argmax(z[lo:j + 2]))
+            around = np.median(z[max(peak - 12, 1):peak + 13])
+            # A line, not the red noise a subharmonic of a line may sit in.
+            if z[peak] > threshold and z[peak] > 30 * around:
+                return peak
         return k
 
     def _refine(self, k: int) -> float:

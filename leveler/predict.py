@@ -21,7 +21,8 @@ from scipy.signal import lfilter, ss2tf
 from leveler.config import ConfigError, build
 from leveler.errors import LogError
 from leveler.logreader import read_log
-from leveler.settings import Config, load_config
+from leveler.pid import PID
+from leveler.settings import Config, ControllerConfig, load_config
 from leveler.sim.effects import Effect, EffectsParams, Signals
 from leveler.sim.params import PlantParams
 from leveler.sim.pendulum import PendulumModel
@@ -42,6 +43,8 @@ class Measured:
     model_text: str  # its TOML text ("" for built-in defaults)
     bad_samples: int  # readings that were faulted or NaN, filled by interpolation
     gains: tuple[float, float, float]  # kp, ki, kd of the logged controller
+    controller: ControllerConfig | None = None  # as logged (None: not a leveler log)
+    engaged: np.ndarray | None = None  # per sample: was the loop closed?
 
     @property
     def dt_s(self) -> float:
@@ -115,7 +118,35 @@ def load_measured(path: str | Path, model: str | Path | None = None) -> Measured
     logged = _config_from_text(logged_text, path) if logged_text else cfg
     c = logged.controller
     return Measured(path, Signals(t, dt, temp), u, y, cfg, source, text, nbad,
-                    (c.kp_v_per_m, c.ki_v_per_m_s, c.kd_v_s_per_m))
+                    (c.kp_v_per_m, c.ki_v_per_m_s, c.kd_v_s_per_m),
+                    c if logged_text else None, s["state"] == "engaged")
+
+
+def excitation_v(meas: Measured) -> np.ndarray | None:
+    """The part of the actuator voltage that is not the logged controller's answer to the
+    logged readings (a modulation, a hand on the knob); None if the log does not say
+    what the controller was.
+
+    Without it (and without a measured input such as the temperature) a closed loop says
+    nothing about the actuator: "the piezo did not move" and "the table moved the other
+    way" look the same, so diagnose does not look for actuator effects then.
+    """
+    if meas.controller is None or meas.engaged is None:
+        return None
+    pid = PID(meas.controller.pid_config())
+    y, u, on = meas.y_m.tolist(), meas.u_v.tolist(), meas.engaged.tolist()
+    out = np.empty(len(u))
+    held, was_on, dt = u[0], False, meas.dt_s
+    for n, (yn, un, engaged) in enumerate(zip(y, u, on, strict=True)):
+        if engaged:
+            if not was_on:
+                pid.engage(yn, held)
+            held = pid.update(yn, dt).command_v
+        out[n] = un - held
+        if not engaged:
+            held = un
+        was_on = engaged
+    return out
 
 
 def pendulum_filter(params: PlantParams, dt_s: float) -> tuple[np.ndarray, np.ndarray]:

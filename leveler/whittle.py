@@ -120,7 +120,7 @@ class Whitener:
         use = np.arange(len(p)) >= 4
         s = self.spectrum.fit(p, use)
         self.psd = s
-        self.weight = 1.0 / np.sqrt(s * self.norm)
+        self.weight = minimum_phase(1.0 / np.sqrt(s * self.norm), self.n)
         self.weight[0] = 0.0  # the mean: removed before the window, carries nothing
 
     def _stack(self, spec: np.ndarray) -> np.ndarray:
@@ -139,6 +139,27 @@ class Whitener:
     def zscores(self, residual: np.ndarray) -> np.ndarray:
         """Periodogram over the fitted noise spectrum, per bin (about 1 where it fits)."""
         return self.periodogram(residual) / self.psd
+
+
+def minimum_phase(gain: np.ndarray, n: int) -> np.ndarray:
+    """The causal, minimum-phase filter with this gain on the rfft grid (real cepstrum).
+
+    Whitening with a zero-phase gain would be non-causal, and in closed loop that matters:
+    the actuator voltage answers the disturbance, so a non-causal whitening correlates
+    an actuator effect with the very disturbance it reacts to and blames the piezo for
+    the table's tilt. The innovations of a causal whitening do not depend on the voltage
+    applied at the same time (prediction-error identification's consistency argument).
+    """
+    log_gain = np.log(np.maximum(gain, np.max(gain) * 1e-300))
+    log_gain[0] = log_gain[1]
+    cep = np.fft.irfft(log_gain, n)
+    fold = np.zeros(n)
+    fold[0] = cep[0]
+    half = (n + 1) // 2
+    fold[1:half] = 2 * cep[1:half]
+    if n % 2 == 0:
+        fold[n // 2] = cep[n // 2]
+    return np.exp(np.fft.rfft(fold))
 
 
 def deviance(cost_before: float, cost_after: float) -> float:

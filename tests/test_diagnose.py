@@ -85,7 +85,10 @@ CASES: dict[str, Case] = {
     "adc_quantization": Case(
         lambda r: AdcQuantization(step_m=float(r.uniform(1.5e-8, 4e-8)),
                                   offset_m=float(r.uniform(0.0, 1e-8))),
-        2.0, (1e-4, 1e-2), {"step_m": 0.08}),
+        # Quantization shows while the signal slews through levels (a slow modulation);
+        # a quiet loop parks the reading at a step edge, where noise decides each sample.
+        2.0, (0.01, 0.1), {"step_m": 0.08},
+        {"dither_v": 5.0, "dither_period_s": 120.0, "dither_shape": "triangle"}),
 }
 FAST = ("periodic_disturbance", "adc_quantization")
 

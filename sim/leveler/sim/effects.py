@@ -55,6 +55,9 @@ class Effect:
     magnitude: ClassVar[str]  # the free parameter that says how big the effect is
     linear: ClassVar[bool] = True  # is the effect on the reading proportional to magnitude?
     needs_temperature: ClassVar[bool] = False
+    # Only identifiable if the actuator was driven by more than feedback on the residual
+    # (a modulation) or the disturbance it fights is modeled (a logged temperature).
+    needs_excitation: ClassVar[bool] = False
 
     def values(self) -> dict[str, Any]:
         return {f.name: getattr(self, f.name) for f in fields(self)}  # type: ignore[arg-type]
@@ -71,6 +74,10 @@ class Effect:
 
     def describe(self) -> str:
         return self.title
+
+    def canonical(self) -> Effect:
+        """The one form of equivalent parameter sets that reports use."""
+        return self
 
     def difference(self, other: Effect, key: str) -> float:
         """How far apart two fits of this effect are in one parameter."""
@@ -138,6 +145,14 @@ class PeriodicDisturbance(Effect):
 
     def bounds(self, key: str) -> tuple[float, float]:
         return (1e-3, math.inf) if key == "period_s" else (-math.inf, math.inf)
+
+    def canonical(self) -> Effect:
+        """A sine or triangle upside down is the same one half a period later: report it
+        with a positive peak to peak (a sawtooth's sign means rising or falling)."""
+        if self.shape != "sawtooth" and self.peak_to_peak_rad < 0:
+            return self.replace(peak_to_peak_rad=-self.peak_to_peak_rad,
+                                phase_s=(self.phase_s + self.period_s / 2) % self.period_s)
+        return self.replace(phase_s=self.phase_s % self.period_s)
 
     def difference(self, other: Effect, key: str) -> float:
         d = float(getattr(self, key)) - float(getattr(other, key))
@@ -247,6 +262,7 @@ class ActuatorDelay(Effect):
     title: ClassVar[str] = "actuator delay"
     free: ClassVar[tuple[str, ...]] = ("delay_s",)
     magnitude: ClassVar[str] = "delay_s"
+    needs_excitation: ClassVar[bool] = True
     linear: ClassVar[bool] = False
 
     delay_s: float = non_negative(0.0)
@@ -318,6 +334,7 @@ class ActuatorHysteresis(Effect):
     title: ClassVar[str] = "actuator hysteresis"
     free: ClassVar[tuple[str, ...]] = ("width_v", "fraction")
     magnitude: ClassVar[str] = "fraction"
+    needs_excitation: ClassVar[bool] = True
 
     model: Literal["prandtl_ishlinskii"] = "prandtl_ishlinskii"
     width_v: float = positive(1.0)
@@ -378,6 +395,7 @@ class ExtraResonance(Effect):
     title: ClassVar[str] = "extra resonance"
     free: ClassVar[tuple[str, ...]] = ("frequency_hz", "q", "gain")
     magnitude: ClassVar[str] = "gain"
+    needs_excitation: ClassVar[bool] = True
 
     frequency_hz: float = positive(1.0)
     q: float = positive(10.0)
@@ -437,6 +455,7 @@ class SensorGainError(Effect):
     title: ClassVar[str] = "sensor gain error"
     free: ClassVar[tuple[str, ...]] = ("gain_error",)
     magnitude: ClassVar[str] = "gain_error"
+    needs_excitation: ClassVar[bool] = True
 
     gain_error: float = field(default=0.0, metadata={"gt": -1.0})
 
@@ -470,6 +489,9 @@ class SensorDrift(Effect):
     title: ClassVar[str] = "sensor drift"
     free: ClassVar[tuple[str, ...]] = ("rate_m_per_s",)
     magnitude: ClassVar[str] = "rate_m_per_s"
+    # Without the temperature the table's own thermal tilt is unpredicted, and a trend in
+    # the residual is as likely tilt as sensor: only sought when the tilt is modeled.
+    needs_temperature: ClassVar[bool] = True
 
     rate_m_per_s: float = 0.0
 
