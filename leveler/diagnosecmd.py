@@ -12,6 +12,7 @@ from typing import Any
 from leveler.diagnose import BANDS_HZ, Diagnosis, diagnose
 from leveler.errors import LogError
 from leveler.persist import write_atomic
+from leveler.plots import block_means
 from leveler.predict import Measured, load_measured
 from leveler.settings import load_config
 from leveler.sim.effects import Effect
@@ -147,15 +148,15 @@ def write_report(directory: Path, d: Diagnosis, meas: Measured, text: str,
     fig = Figure(figsize=(9, 6), layout="constrained")
     FigureCanvasAgg(fig)
     top, bottom = fig.subplots(2, 1, sharex=True)
-    t = meas.t_s[span] / 3600
     y = meas.y_m[span] - meas.y_m[span].mean()
-    step = max(len(t) // 20000, 1)
-    top.plot(t[::step], y[::step] * 1e9, lw=0.6, label="measured")
-    top.plot(t[::step], (y - r1 + r1.mean())[::step] * 1e9, lw=0.6, label="fitted model")
+    t, avg = block_means(meas.t_s[span] / 3600, y, y - r1 + r1.mean(), r0, r1)
+    top.plot(t, avg[0] * 1e9, lw=0.8, label="measured")
+    top.plot(t, avg[1] * 1e9, lw=0.8, label="fitted model")
     top.set_ylabel("sensor [nm]")
     top.legend()
-    bottom.plot(t[::step], r0[::step] * 1e9, lw=0.6, label="residual, nominal")
-    bottom.plot(t[::step], r1[::step] * 1e9, lw=0.6, label="residual, fitted")
+    top.set_title(f"{Path(meas.path).name}: {(t[1] - t[0]) * 3600:.0f} s averages")
+    bottom.plot(t, avg[2] * 1e9, lw=0.8, label="residual, nominal")
+    bottom.plot(t, avg[3] * 1e9, lw=0.8, label="residual, fitted")
     bottom.set_xlabel("time [h]")
     bottom.set_ylabel("residual [nm]")
     bottom.legend()

@@ -11,6 +11,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 if TYPE_CHECKING:
     from leveler.spectral import Spectrum
 
@@ -61,3 +63,14 @@ def plot_asd(
     out = Path(path)
     fig.savefig(out, dpi=120, format="png")
     return out
+
+
+def block_means(t: np.ndarray, *series: np.ndarray,
+                points: int = 2000) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Block averages (about `points` of them) of a time axis and series: a night of
+    10 Hz samples drawn one by one is a band of noise, its minute averages show the drift."""
+    block = max(len(t) // points, 1)
+    n = len(t) // block * block
+    def avg(x: np.ndarray) -> np.ndarray:
+        return x[:n].reshape(-1, block).mean(axis=1)
+    return avg(t), [avg(x) for x in series]

@@ -123,21 +123,21 @@ def plot_replay(path: str | Path, meas: Measured, pred: Predictor, span: slice,
     from matplotlib.figure import Figure
 
     from leveler.diagnose import residual
+    from leveler.plots import block_means
     from leveler.spectral import lpsd
 
     fig = Figure(figsize=(9, 7), layout="constrained")
     FigureCanvasAgg(fig)
     top, bottom = fig.subplots(2, 1)
-    t = meas.t_s[span] / 3600
     y = meas.y_m[span]
     r = residual(meas, pred, span)
-    step = max(len(t) // 20000, 1)
-    top.plot(t[::step], y[::step] * 1e9, lw=0.6, label="measured")
-    top.plot(t[::step], (y - r)[::step] * 1e9, lw=0.6, label="model")
+    t, (ym, pm) = block_means(meas.t_s[span] / 3600, y, y - r)
+    top.plot(t, ym * 1e9, lw=0.8, label="measured")
+    top.plot(t, pm * 1e9, lw=0.8, label="model")
     top.set_xlabel("time [h]")
     top.set_ylabel("sensor [nm]")
     top.legend()
-    top.set_title(title)
+    top.set_title(f"{title} ({(t[1] - t[0]) * 3600:.0f} s averages)")
     fs = 1.0 / meas.dt_s
     for label, x in (("measured", y - y.mean()), ("residual", r)):
         s = lpsd(x, fs)
