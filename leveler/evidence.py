@@ -30,8 +30,9 @@ class Evidence:
         self._z = whitener.zscores(self.residual)
 
     def fmin_hz(self) -> float:
-        """Lowest frequency with at least four cycles in the span."""
-        return 4.0 / (self.w.n * self.sig.dt_s)
+        """Lowest frequency with at least eight cycles in the span: fewer do not make a
+        periodic disturbance, and the lowest bins are where unmodeled drift lives."""
+        return 8.0 / (self.w.n * self.sig.dt_s)
 
     def peaks(self, fmin_hz: float, fmax_hz: float, most: int = 3) -> list[float]:
         """Frequencies of the strongest lines in [fmin, fmax], harmonics of a stronger line
@@ -49,7 +50,7 @@ class Evidence:
         for k in idx[np.argsort(z[idx])[::-1]]:
             if harmonic(float(f[k])):
                 continue
-            fk = self._refine(self._fundamental(int(k), threshold))
+            fk = self._refine(self._fundamental(int(k), threshold, fmin_hz))
             if harmonic(fk):
                 continue
             found.append(fk)
@@ -57,13 +58,13 @@ class Evidence:
                 break
         return sorted(set(found))
 
-    def _fundamental(self, k: int, threshold: float) -> int:
+    def _fundamental(self, k: int, threshold: float, fmin_hz: float) -> int:
         """The lowest significant subharmonic of bin k: a sawtooth's second or third
         harmonic can stand out more than its fundamental."""
         z = self._z
         for div in (5, 4, 3, 2):
             j = round(k / div)
-            if j < 4:
+            if j < 4 or self.w.f_hz[j] < fmin_hz:
                 continue
             lo = j - 1
             peak = lo + int(np.argmax(z[lo:j + 2]))

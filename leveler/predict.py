@@ -132,7 +132,7 @@ def excitation_v(meas: Measured) -> np.ndarray | None:
     way" look the same, so diagnose does not look for actuator effects then.
     """
     if meas.controller is None or meas.engaged is None:
-        return None
+        return _unexplained_by_feedback(meas)
     pid = PID(meas.controller.pid_config())
     y, u, on = meas.y_m.tolist(), meas.u_v.tolist(), meas.engaged.tolist()
     out = np.empty(len(u))
@@ -282,3 +282,16 @@ class Predictor:
         if fx.stage == "sensor":
             return self.with_candidate(fx) - self.base.y_m
         return self.predict(self.effects.with_effect(fx)).x_m - self.base.x_m
+
+
+def _unexplained_by_feedback(meas: Measured) -> np.ndarray:
+    """For a log without its controller (imported data): the voltage changes a PID in
+    velocity form (du = kp de + ki e dt + kd d2e / dt) fitted to the readings cannot
+    explain, summed up. Open-loop data keeps all its changes; a closed loop's are
+    explained and leave ~0."""
+    y, u = meas.y_m, meas.u_v
+    du = np.diff(u)[1:]
+    a = np.column_stack([y[2:], np.diff(y)[1:], np.diff(y, 2)])
+    a = a / np.maximum(np.std(a, axis=0), 1e-300)
+    coef, *_ = np.linalg.lstsq(a, du, rcond=None)
+    return np.concatenate([[0.0, 0.0], np.cumsum(du - a @ coef)])

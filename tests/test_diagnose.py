@@ -196,3 +196,40 @@ def test_cli_says_so_when_nothing_is_missing(tmp_path: Path,
     assert main(["diagnose", str(log)]) == 0
     assert "no missing effect found" in capsys.readouterr().out
     assert not (tmp_path / "quiet.fitted.toml").exists()
+
+
+def _imported(tmp_path: Path, effect: Effect | None, capsys: pytest.CaptureFixture[str],
+              **dither: Any) -> list[Effect]:
+    """Closed-loop data as another system would record it: no temperature, no controller."""
+    from leveler.logreader import read_log
+
+    cfg, text = load_config(REPO / "config" / "sim.toml")
+    make_measured(tmp_path / "m.mcap", cfg, text, effect, duration_s=4 * 3600, seed=9, **dither)
+    s = read_log(tmp_path / "m.mcap").samples
+    csv = tmp_path / "other.csv"
+    np.savetxt(csv, np.column_stack([s["t_s"], s["applied_v"], s["sensor_m"]]), delimiter=",",
+               fmt="%.17g", header="t_s,actuator_V,sensor_m", comments="")
+    assert main(["import-csv", str(csv), "--out", str(tmp_path / "other.mcap"), "--force"]) == 0
+    capsys.readouterr()
+    meas = load_measured(tmp_path / "other.mcap", REPO / "config" / "sim.toml")
+    assert meas.sig.temperature_k is None and meas.controller is None
+    return [f.effect for f in diagnose(meas).effects]
+
+
+def test_imported_quiet_loop_without_temperature(tmp_path: Path,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """The voltage mirrors the unmodeled thermal tilt: no actuator effect may be blamed."""
+    assert _imported(tmp_path, None, capsys) == []
+    truth = PeriodicDisturbance(shape="sawtooth", period_s=333.0, peak_to_peak_rad=2e-7,
+                                phase_s=10.0)
+    found = _imported(tmp_path, truth, capsys)
+    assert [fx.name for fx in found] == ["periodic_disturbance"]
+    assert found[0].period_s == pytest.approx(333.0, rel=1e-3)  # type: ignore[attr-defined]
+    assert found[0].peak_to_peak_rad == pytest.approx(2e-7, rel=0.1)  # type: ignore[attr-defined]
+
+
+def test_imported_modulated_loop_without_temperature(tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    found = _imported(tmp_path, ActuatorDelay(delay_s=0.5), capsys, **_SQUARE)
+    assert [fx.name for fx in found] == ["actuator_delay"]
+    assert found[0].delay_s == pytest.approx(0.5, rel=0.02)  # type: ignore[attr-defined]

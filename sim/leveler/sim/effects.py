@@ -144,7 +144,10 @@ class PeriodicDisturbance(Effect):
         return abs(self.peak_to_peak_rad) or 1e-9
 
     def bounds(self, key: str) -> tuple[float, float]:
-        return (1e-3, math.inf) if key == "period_s" else (-math.inf, math.inf)
+        # Within 25% of where the line was seen: beyond, the fit is chasing something else.
+        if key == "period_s":
+            return (0.8 * self.period_s, 1.25 * self.period_s)
+        return (-math.inf, math.inf)
 
     def canonical(self) -> Effect:
         """A sine or triangle upside down is the same one half a period later: report it
@@ -420,8 +423,8 @@ class ExtraResonance(Effect):
         return abs(self.gain) or 0.01
 
     def bounds(self, key: str) -> tuple[float, float]:
-        if key == "frequency_hz":
-            return (0.02, 1e6)  # slower "modes" are drifts and the loop's own response
+        if key == "frequency_hz":  # near the line it was seen at; not a drift (< 20 mHz)
+            return (max(0.8 * self.frequency_hz, 0.02), 1.25 * self.frequency_hz)
         # A mode larger than the pendulum's whole static response would be the pendulum.
         return (2.0, 1e4) if key == "q" else (-1.0, 1.0)
 
