@@ -63,6 +63,12 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     return run_diagnose_command(args)
 
 
+def _cmd_emulate(args: argparse.Namespace) -> int:
+    from leveler.emulatecmd import run_emulate_command
+
+    return run_emulate_command(args)
+
+
 def _gains(text: str) -> tuple[float, float, float]:
     from leveler.replay import parse_gains
 
@@ -290,6 +296,19 @@ def build_parser() -> argparse.ArgumentParser:
                     help="print one JSON object: effects, gap_before, gap_after, model_out, "
                     "and every candidate tried with its scores")
     dg.set_defaults(func=_cmd_diagnose)
+    em = sub.add_parser(
+        "emulate", help="serve the simulated plant over the real device protocol",
+        description="Stand in for the hardware: serve the simulated plant ([plant] of the "
+        "config) through the protocol the config's drivers speak, at the addresses and "
+        "with the scaling the config gives, so `leveler run --config` the same file levels "
+        "it exactly as it would the real table. modbus: a Modbus TCP server at "
+        "[sensor.modbus] host:port (input registers: the sensor; holding registers: the "
+        "piezo). Runs until Ctrl-C.")
+    em.add_argument("kind", choices=["modbus"], help="which protocol to serve")
+    em.add_argument("--config", required=True, help="the lab config to serve")
+    em.add_argument("--seed", type=int, default=None,
+                    help="disturbance and noise seed (default: [sim] seed)")
+    em.set_defaults(func=_cmd_emulate)
     _add_control_commands(sub)
     return parser
 

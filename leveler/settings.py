@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Literal
 
 from leveler.config import ConfigError, build, load_toml, non_negative, positive
+from leveler.drivers.modbus_config import ModbusActuatorConfig, ModbusSensorConfig
 from leveler.pid import PIDConfig, PIDGains
 from leveler.sim.params import PlantParams
 
@@ -77,13 +78,27 @@ class ControllerConfig:
 
 @dataclass(frozen=True, slots=True)
 class SensorConfig:
-    backend: Literal["sim"] = "sim"
+    """Where readings come from: the simulated plant or a device (its table below)."""
+
+    backend: Literal["sim", "modbus"] = "sim"
+    modbus: ModbusSensorConfig | None = None
+
+    def __post_init__(self) -> None:
+        if self.backend == "modbus" and self.modbus is None:
+            raise ValueError('backend = "modbus" needs a [sensor.modbus] table')
 
 
 @dataclass(frozen=True, slots=True)
 class ActuatorConfig:
-    backend: Literal["sim"] = "sim"
+    """What moves the piezo. safe_v is the simulated piezo's; a device table has its own."""
+
+    backend: Literal["sim", "modbus"] = "sim"
     safe_v: float = 75.0
+    modbus: ModbusActuatorConfig | None = None
+
+    def __post_init__(self) -> None:
+        if self.backend == "modbus" and self.modbus is None:
+            raise ValueError('backend = "modbus" needs an [actuator.modbus] table')
 
 
 @dataclass(frozen=True, slots=True)
@@ -106,6 +121,11 @@ class Config:
     actuator: ActuatorConfig = field(default_factory=ActuatorConfig)
     plant: PlantParams = field(default_factory=PlantParams)
     sim: SimConfig = field(default_factory=SimConfig)
+
+    def __post_init__(self) -> None:
+        if (self.sensor.backend == "sim") != (self.actuator.backend == "sim"):
+            raise ValueError("sensor.backend and actuator.backend: the simulated plant is "
+                             "both sensor and actuator; use \"sim\" for both or for neither")
 
 
 def load_config(path: str | Path) -> tuple[Config, str]:

@@ -33,6 +33,11 @@ class Stand:
 
 def open_stand(cfg: Config, seed: int | None = None) -> Stand:
     """Make (not yet connect) the drivers named in cfg; `seed` overrides [sim] seed."""
+    if cfg.sensor.backend == "modbus":
+        from leveler.drivers.modbus import ModbusActuator, ModbusSensor
+
+        assert cfg.sensor.modbus is not None and cfg.actuator.modbus is not None
+        return Stand(ModbusSensor(cfg.sensor.modbus), ModbusActuator(cfg.actuator.modbus), None)
     dt_s = 1.0 / cfg.loop.rate_hz
     plant = Plant(cfg.plant, dt_s, cfg.sim.seed if seed is None else seed)
     sim = SimulatedStand(plant, cfg.actuator.safe_v, hang_at_s=cfg.sim.hang_at_s,

@@ -55,8 +55,12 @@ class DaemonProc:
 
 
 def daemon_config(tmp_path: Path, sock: Path, *, rate_hz: float = 50.0, sim: str = "",
-                  engage: bool = True) -> Path:
-    cfg = (REPO / "config" / "sim.toml").read_text()
+                  engage: bool = True, base: str = "sim.toml",
+                  replace: dict[str, str] | None = None) -> Path:
+    cfg = (REPO / "config" / base).read_text()
+    for old, new in (replace or {}).items():
+        assert old in cfg, old
+        cfg = cfg.replace(old, new)
     cfg = cfg.replace("rate_hz = 10.0", f"rate_hz = {rate_hz}")
     cfg = cfg.replace("status_interval_s = 5.0", "status_interval_s = 0.5")
     cfg = cfg.replace('dir = "logs"', f'dir = "{tmp_path / "logs"}"')
@@ -71,14 +75,17 @@ def daemon_config(tmp_path: Path, sock: Path, *, rate_hz: float = 50.0, sim: str
 
 @pytest.fixture
 def start_daemon(tmp_path: Path) -> Iterator:  # type: ignore[type-arg]
-    """Factory: start_daemon(rate_hz=..., sim='hang_at_s = 3.0', env={...}) -> DaemonProc."""
+    """Factory: start_daemon(rate_hz=..., sim='hang_at_s = 3.0', env={...}, base='x.toml',
+    replace={'old text': 'new text'}) -> DaemonProc."""
     started: list[DaemonProc] = []
     short = Path(tempfile.mkdtemp(prefix="lv", dir="/tmp"))  # AF_UNIX paths are short
 
     def start(*, rate_hz: float = 50.0, sim: str = "", engage: bool = True,
-              env: dict[str, str] | None = None, wait_socket: bool = True) -> DaemonProc:
+              env: dict[str, str] | None = None, wait_socket: bool = True,
+              base: str = "sim.toml", replace: dict[str, str] | None = None) -> DaemonProc:
         sock = short / f"c{len(started)}.sock"
-        config = daemon_config(tmp_path, sock, rate_hz=rate_hz, sim=sim, engage=engage)
+        config = daemon_config(tmp_path, sock, rate_hz=rate_hz, sim=sim, engage=engage,
+                               base=base, replace=replace)
         proc = subprocess.Popen(
             [sys.executable, "-m", "leveler.cli", "run", "--config", str(config)],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
