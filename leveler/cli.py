@@ -303,8 +303,10 @@ def build_parser() -> argparse.ArgumentParser:
         "with the scaling the config gives, so `leveler run --config` the same file levels "
         "it exactly as it would the real table. modbus: a Modbus TCP server at "
         "[sensor.modbus] host:port (input registers: the sensor; holding registers: the "
-        "piezo). Runs until Ctrl-C.")
-    em.add_argument("kind", choices=["modbus"], help="which protocol to serve")
+        "piezo). serial: a piezo amplifier ([actuator.serial] protocol) and a sensor "
+        "controller on pseudo-terminals, linked at the config's port paths (which must be "
+        "free paths, e.g. /tmp/leveler-piezo, not real devices). Runs until Ctrl-C.")
+    em.add_argument("kind", choices=["modbus", "serial"], help="which protocol to serve")
     em.add_argument("--config", required=True, help="the lab config to serve")
     em.add_argument("--seed", type=int, default=None,
                     help="disturbance and noise seed (default: [sim] seed)")

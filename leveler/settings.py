@@ -9,6 +9,7 @@ from typing import Literal
 
 from leveler.config import ConfigError, build, load_toml, non_negative, positive
 from leveler.drivers.modbus_config import ModbusActuatorConfig, ModbusSensorConfig
+from leveler.drivers.serial_config import SerialPiezoConfig, SerialSensorConfig
 from leveler.pid import PIDConfig, PIDGains
 from leveler.sim.params import PlantParams
 
@@ -80,25 +81,28 @@ class ControllerConfig:
 class SensorConfig:
     """Where readings come from: the simulated plant or a device (its table below)."""
 
-    backend: Literal["sim", "modbus"] = "sim"
+    backend: Literal["sim", "modbus", "serial"] = "sim"
     modbus: ModbusSensorConfig | None = None
+    serial: SerialSensorConfig | None = None
 
     def __post_init__(self) -> None:
-        if self.backend == "modbus" and self.modbus is None:
-            raise ValueError('backend = "modbus" needs a [sensor.modbus] table')
+        if self.backend != "sim" and getattr(self, self.backend) is None:
+            raise ValueError(f'backend = "{self.backend}" needs a [sensor.{self.backend}] table')
 
 
 @dataclass(frozen=True, slots=True)
 class ActuatorConfig:
     """What moves the piezo. safe_v is the simulated piezo's; a device table has its own."""
 
-    backend: Literal["sim", "modbus"] = "sim"
+    backend: Literal["sim", "modbus", "serial"] = "sim"
     safe_v: float = 75.0
     modbus: ModbusActuatorConfig | None = None
+    serial: SerialPiezoConfig | None = None
 
     def __post_init__(self) -> None:
-        if self.backend == "modbus" and self.modbus is None:
-            raise ValueError('backend = "modbus" needs an [actuator.modbus] table')
+        if self.backend != "sim" and getattr(self, self.backend) is None:
+            raise ValueError(f'backend = "{self.backend}" needs an [actuator.{self.backend}] '
+                             "table")
 
 
 @dataclass(frozen=True, slots=True)

@@ -33,11 +33,30 @@ class Stand:
 
 def open_stand(cfg: Config, seed: int | None = None) -> Stand:
     """Make (not yet connect) the drivers named in cfg; `seed` overrides [sim] seed."""
+    sensor: Sensor
+    actuator: Actuator
     if cfg.sensor.backend == "modbus":
-        from leveler.drivers.modbus import ModbusActuator, ModbusSensor
+        from leveler.drivers.modbus import ModbusSensor
 
-        assert cfg.sensor.modbus is not None and cfg.actuator.modbus is not None
-        return Stand(ModbusSensor(cfg.sensor.modbus), ModbusActuator(cfg.actuator.modbus), None)
+        assert cfg.sensor.modbus is not None
+        sensor = ModbusSensor(cfg.sensor.modbus)
+    elif cfg.sensor.backend == "serial":
+        from leveler.drivers.sensor_serial import SerialSensor
+
+        assert cfg.sensor.serial is not None
+        sensor = SerialSensor(cfg.sensor.serial)
+    if cfg.actuator.backend == "modbus":
+        from leveler.drivers.modbus import ModbusActuator
+
+        assert cfg.actuator.modbus is not None
+        actuator = ModbusActuator(cfg.actuator.modbus)
+    elif cfg.actuator.backend == "serial":
+        from leveler.drivers.piezo_serial import SerialPiezo
+
+        assert cfg.actuator.serial is not None
+        actuator = SerialPiezo(cfg.actuator.serial)
+    if cfg.sensor.backend != "sim":
+        return Stand(sensor, actuator, None)
     dt_s = 1.0 / cfg.loop.rate_hz
     plant = Plant(cfg.plant, dt_s, cfg.sim.seed if seed is None else seed)
     sim = SimulatedStand(plant, cfg.actuator.safe_v, hang_at_s=cfg.sim.hang_at_s,

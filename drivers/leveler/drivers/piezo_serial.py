@@ -29,6 +29,7 @@ import abc
 import logging
 import math
 import re
+import termios
 from typing import ClassVar
 
 import serial
@@ -74,7 +75,7 @@ class SerialLink:
         if port is not None:
             try:
                 port.close()
-            except OSError as exc:  # closing a port whose device vanished
+            except (OSError, termios.error) as exc:  # closing a port whose device vanished
                 log.warning("%s on %s: close failed: %s", self.device, self.cfg.port, exc)
 
     def exchange(self, command: str, ending: bytes, reply_end: bytes) -> str:
@@ -85,7 +86,7 @@ class SerialLink:
             self._port.reset_input_buffer()  # whatever a timed-out reply left behind
             self._port.write(command.encode("ascii") + ending)
             data = self._port.read_until(reply_end)
-        except OSError as exc:  # serial.SerialException is an OSError
+        except (OSError, termios.error) as exc:  # a vanished pty fails in tcflush (termios)
             raise DriverError(f"{self.where(command)}: {exc}") from None
         if not data.endswith(reply_end):
             got = f"incomplete reply {data!r}" if data else "no reply"
