@@ -29,6 +29,7 @@ from leveler import __version__
 from leveler.clock import RealtimeClock
 from leveler.config import ConfigError
 from leveler.control import ControlServer, Peer, resolve_group
+from leveler.drivers.base import DriverError, Status
 from leveler.logrotate import RotatingLog
 from leveler.loop import ENGAGED, FAULT, Loop
 from leveler.notify import Notifier
@@ -84,6 +85,10 @@ class Daemon:
         pid = PID(self.cfg.controller.pid_config(), initial_output_v=self.stand.actuator.safe_v)
         self.loop = Loop(self.stand.sensor, self.stand.actuator, pid, self.dt, [self.log],
                          self.stand.truth)
+        self._was_engaged = False  # the state a fault interrupted, for resuming after it
+        self._reconnect_wait_s = 0.0  # 0: not in fault (or the fault has just come)
+        self._next_reconnect = 0.0
+        self._resume = False  # close the loop at the next good reading
         self.clock = RealtimeClock(self.dt)
         self.server = ControlServer(self.socket_path, self, gid=self.gid,
                                     max_clients=self.cfg.control.max_clients,
@@ -180,8 +185,37 @@ class Daemon:
         return self.loop.state
 
     def _stop(self, t: float, who: str) -> str:
+        self._resume = False  # a person said stop: no automatic resume after a reconnect
         self.loop.disengage(t, f"stop by {who}")
         return self.loop.state
+
+    def _maybe_reconnect(self, t: float, now: float) -> None:
+        """In fault, reconnect the devices at doubling intervals and probe the sensor; a
+        good reading leaves the fault (and closes the loop again if it was closed): a
+        pulled cable put back at 3 a.m. must not need a person to resume leveling."""
+        lc = self.cfg.loop
+        if self._reconnect_wait_s == 0.0:  # the fault just came: first try after the minimum
+            self._reconnect_wait_s = lc.reconnect_min_s
+            self._next_reconnect = now + self._reconnect_wait_s
+            return
+        if now < self._next_reconnect:
+            return
+        try:
+            self.stand.close()
+            self.stand.connect()
+            reading = self.stand.sensor.read(t)
+            if reading.status != Status.OK:
+                raise DriverError(f"probe reading not OK ({reading.status.name})")
+        except DriverError as exc:
+            self._reconnect_wait_s = min(2 * self._reconnect_wait_s, lc.reconnect_max_s)
+            self._next_reconnect = now + self._reconnect_wait_s
+            self.loop.emit("reconnect", f"failed: {exc}", t,
+                           next_try_s=round(self._reconnect_wait_s, 3))
+            return
+        self.loop.emit("reconnect", "devices answer again", t)
+        self.loop.reset(t, "reconnected")
+        # Close the loop again from the next good cycle's reading (bumpless).
+        self._resume = self._was_engaged and lc.resume_after_reconnect
 
     def _reset(self, t: float, who: str) -> str:
         if self.loop.state != FAULT:
@@ -314,6 +348,14 @@ class Daemon:
                     self._reload(t)
                 s = loop.cycle(t, clock.wall_ns(t))
                 now = time.monotonic()
+                if loop.state == FAULT:
+                    self._maybe_reconnect(t, now)
+                else:
+                    self._reconnect_wait_s = 0.0
+                    if self._resume and s.status == 0:
+                        self._resume = False
+                        loop.engage(t, "resume after reconnect")
+                    self._was_engaged = loop.state == ENGAGED
                 if wd is not None and now >= next_wd:
                     self.notifier.watchdog()  # from this thread: a stalled loop stops it
                     next_wd = now + wd

@@ -57,6 +57,8 @@ class Loop:
         if self.state != IDLE:
             return
         measurement = self.last.sensor_m if self.last is not None else 0.0
+        if not math.isfinite(measurement):  # the last cycle had no reading (just reset)
+            measurement = self.pid.config.setpoint_m  # the first good reading corrects it
         self.pid.engage(measurement, self.held_v)
         self._transition(ENGAGED, reason, t_s)
 

@@ -20,6 +20,9 @@ class LoopConfig:
     status_interval_s: float = positive(5.0)
     engage_on_start: bool = True
     ready_samples: int = field(default=10, metadata={"ge": 1})
+    reconnect_min_s: float = positive(2.0)
+    reconnect_max_s: float = positive(60.0)
+    resume_after_reconnect: bool = True
 
 
 @dataclass(frozen=True, slots=True)

@@ -114,7 +114,8 @@ def test_rotate_starts_a_new_complete_file(start_daemon) -> None:  # type: ignor
 
 
 def test_fault_needs_reset_before_start(start_daemon) -> None:  # type: ignore[no-untyped-def]
-    d = start_daemon(sim="fail_at_s = 1.0")
+    no_auto = "engage_on_start = true\nreconnect_min_s = 1000.0"
+    d = start_daemon(sim="fail_at_s = 1.0", replace={"engage_on_start = true": no_auto})
     deadline = time.monotonic() + 20
     while status(d)["state"] != "fault":
         assert time.monotonic() < deadline, "no fault"
@@ -130,6 +131,23 @@ def test_fault_needs_reset_before_start(start_daemon) -> None:  # type: ignore[n
     (log,) = d.logs.glob("*.mcap")
     states = [e["detail"].get("new") for e in read_log(log).events if e["kind"] == "state"]
     assert states == ["engaged", "fault", "idle", "engaged", "idle"]
+
+
+def test_fault_recovers_by_itself_when_the_device_answers_again(start_daemon) -> None:  # type: ignore[no-untyped-def]
+    fast = "engage_on_start = true\nreconnect_min_s = 0.5"
+    d = start_daemon(sim="fail_at_s = 1.0", replace={"engage_on_start = true": fast})
+    deadline = time.monotonic() + 20
+    seen_fault = False
+    while not (seen_fault and status(d)["state"] == "engaged"):
+        seen_fault = seen_fault or status(d)["state"] == "fault"
+        assert time.monotonic() < deadline, "no fault and recovery"
+        time.sleep(0.05)
+    d.stop()
+    (log,) = d.logs.glob("*.mcap")
+    events = read_log(log).events
+    states = [e["detail"].get("new") for e in events if e["kind"] == "state"]
+    assert states == ["engaged", "fault", "idle", "engaged", "idle"]
+    assert [e["reason"] for e in events if e["kind"] == "reconnect"] == ["devices answer again"]
 
 
 def test_bad_requests_get_errors_and_the_daemon_carries_on(start_daemon) -> None:  # type: ignore[no-untyped-def]

@@ -33,9 +33,10 @@ def _emulator(config: Path) -> subprocess.Popen[str]:
     return proc
 
 
-def test_daemon_levels_the_emulated_plant_and_faults_when_it_goes(
+def test_daemon_levels_the_emulated_plant_faults_when_it_goes_and_resumes(
         start_daemon: Callable[..., object], tmp_path: Path) -> None:
-    replace = {"port = 5020": f"port = {_free_port()}"}
+    replace = {"port = 5020": f"port = {_free_port()}",
+               "engage_on_start = true": "engage_on_start = true\nreconnect_min_s = 0.5"}
     (tmp_path / "emu").mkdir()
     emu_config = daemon_config(tmp_path / "emu", tmp_path / "unused.sock", rate_hz=10.0,
                                base="lab-modbus.toml", replace=replace)
@@ -53,6 +54,11 @@ def test_daemon_levels_the_emulated_plant_and_faults_when_it_goes(
             assert time.monotonic() < deadline, "no fault after the module went away"
             time.sleep(0.2)
         assert d.proc.poll() is None  # type: ignore[attr-defined]  # the daemon stays up
+        emu = _emulator(emu_config)  # the module is back: the daemon reconnects and resumes
+        deadline = time.monotonic() + 15
+        while json.loads(d.cli("status", "--json").stdout)["state"] != "engaged":  # type: ignore[attr-defined]
+            assert time.monotonic() < deadline, "no automatic reconnect"
+            time.sleep(0.2)
         d.stop()  # type: ignore[attr-defined]
     finally:
         if emu.poll() is None:
@@ -69,3 +75,7 @@ def test_daemon_levels_the_emulated_plant_and_faults_when_it_goes(
     assert abs(np.median(y[-30:])) < 0.3 * abs(np.median(y[:10]))
     faults = [e for e in log.events if e["kind"] == "state" and "fault" in json.dumps(e)]
     assert faults and "127.0.0.1" in faults[0]["reason"], log.events
+    reconnects = [e["reason"] for e in log.events if e["kind"] == "reconnect"]
+    assert reconnects[-1] == "devices answer again"
+    states = [e["detail"]["new"] for e in log.events if e["kind"] == "state"]
+    assert states[-4:] == ["fault", "idle", "engaged", "idle"]
