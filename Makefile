@@ -7,7 +7,7 @@ CONFIG ?= config/sim.toml
 
 INSTALL_PYTHON ?= /usr/bin/python3
 
-.PHONY: run test test-slow bench lint clean install systemd-deps test-systemd
+.PHONY: run test test-slow bench lint clean install systemd-deps device-deps test-systemd
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null || { echo "need $(PYTHON) (apt-get install python3 python3-venv)"; exit 1; }
@@ -19,7 +19,7 @@ $(STAMP): pyproject.toml
 run: $(STAMP)
 	$(BIN)/leveler run --config $(CONFIG)
 
-test: $(STAMP)
+test: $(STAMP) device-deps
 	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q -m "not slow and not systemd"
 
@@ -39,6 +39,15 @@ clean:
 # present), /etc/systemd/system/leveler.service. Needs root; safe to repeat.
 install:
 	$(INSTALL_PYTHON) -m leveler.install --python $(INSTALL_PYTHON)
+
+# mbpoll: a third-party Modbus client the tests check the emulator with; apt-installed only
+# when missing and we are root (elsewhere that test skips and says why).
+device-deps:
+	@if command -v mbpoll >/dev/null; then :; \
+	elif [ "$$(id -u)" -eq 0 ]; then \
+	  { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq mbpoll; } \
+	    || echo "could not install mbpoll: the third-party Modbus client test will skip"; \
+	else echo "mbpoll missing (sudo apt-get install mbpoll): its test will skip"; fi
 
 # systemd-analyze and systemd-nspawn: apt-installed only when missing and we are root.
 systemd-deps:
