@@ -25,7 +25,13 @@ from scipy.optimize import least_squares, minimize_scalar
 from scipy.signal import freqz
 
 from leveler.evidence import Evidence
-from leveler.predict import Measured, Predictor, excitation_v, pendulum_filter
+from leveler.predict import (
+    Measured,
+    Predictor,
+    excitation_v,
+    pendulum_filter,
+    sensor_noise_m,
+)
 from leveler.sim.effects import EFFECTS, Effect, EffectsParams
 from leveler.whittle import ENBW_BINS, Whitener, deviance
 
@@ -192,9 +198,7 @@ def _actuator_excited(meas: Measured, pred: Predictor, span: slice) -> bool:
     p = pred.params
     kv = p.piezo.gain_m_per_v / p.platform.support_spacing_m
     seen = pred.pend(kv * exc)[span]
-    se = p.sensor
-    noise = math.hypot(se.noise_m_per_rthz * math.sqrt(0.5 / meas.dt_s), se.lsb_m / math.sqrt(12))
-    return float(np.std(seen)) > 3 * noise
+    return float(np.std(seen)) > 3 * sensor_noise_m(p, meas.dt_s)
 
 
 def _stable(a: Effect, b: Effect) -> bool:
@@ -215,8 +219,7 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
     tried: list[Candidate] = []
     temperature = meas.sig.temperature_k is not None
     excited = temperature or _actuator_excited(meas, pred, whole)
-    se = pred.params.sensor
-    noise = math.hypot(se.noise_m_per_rthz * math.sqrt(0.5 / meas.dt_s), se.lsb_m / math.sqrt(12))
+    noise = sensor_noise_m(pred.params, meas.dt_s)
     while len(found) < max_effects:
         w_train = make_whitener(meas, pred, train)
         w_test = make_whitener(meas, pred, test)

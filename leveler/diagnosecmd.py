@@ -12,7 +12,7 @@ from typing import Any
 from leveler.diagnose import BANDS_HZ, Diagnosis, diagnose
 from leveler.errors import LogError
 from leveler.persist import write_atomic
-from leveler.plots import block_means
+from leveler.plots import block_means, plot_asd
 from leveler.predict import Measured, load_measured
 from leveler.settings import load_config
 from leveler.sim.effects import Effect
@@ -130,20 +130,9 @@ def write_report(directory: Path, d: Diagnosis, meas: Measured, text: str,
     r0, r1 = residual(meas, before, span), residual(meas, after, span)
     fs = 1.0 / meas.dt_s
 
-    fig = Figure(figsize=(8, 5), layout="constrained")
-    FigureCanvasAgg(fig)
-    ax = fig.add_subplot()
-    for label, x in (("residual, nominal model", r0), ("residual, fitted model", r1)):
-        s = lpsd(x, fs)
-        ax.loglog(s.freq_hz, s.asd, lw=1, label=label)
-    for lo, _ in BANDS_HZ.values():
-        ax.axvline(lo, color="0.5", ls=":", lw=0.8)
-    ax.set_xlabel("frequency [Hz]")
-    ax.set_ylabel("residual ASD [m/√Hz]")
-    ax.grid(True, which="major", alpha=0.4)
-    ax.legend()
-    ax.set_title(f"diagnose: {Path(meas.path).name}")
-    fig.savefig(directory / "residual_asd.png", dpi=110)
+    plot_asd([("residual, nominal model", lpsd(r0, fs)),
+              ("residual, fitted model", lpsd(r1, fs))], directory / "residual_asd.png",
+             ylabel="residual ASD [m/√Hz]", title=f"diagnose: {Path(meas.path).name}")
 
     fig = Figure(figsize=(9, 6), layout="constrained")
     FigureCanvasAgg(fig)

@@ -295,3 +295,10 @@ def _unexplained_by_feedback(meas: Measured) -> np.ndarray:
     a = a / np.maximum(np.std(a, axis=0), 1e-300)
     coef, *_ = np.linalg.lstsq(a, du, rcond=None)
     return np.concatenate([[0.0, 0.0], np.cumsum(du - a @ coef)])
+
+
+def sensor_noise_m(params: PlantParams, dt_s: float) -> float:
+    """The model's white sensor noise per sample, ADC rounding included: the floor a replay
+    residual cannot go below, and the yardstick for "big enough to matter"."""
+    se = params.sensor
+    return math.hypot(se.noise_m_per_rthz * math.sqrt(0.5 / dt_s), se.lsb_m / math.sqrt(12))
