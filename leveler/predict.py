@@ -65,10 +65,6 @@ def _fill(x: np.ndarray, bad: np.ndarray) -> np.ndarray:
     return out
 
 
-def load_model(path: str | Path) -> tuple[Config, str]:
-    return load_config(path)
-
-
 def _config_from_text(text: str, where: str) -> Config:
     try:
         return build(Config, tomllib.loads(text))
@@ -109,7 +105,7 @@ def load_measured(path: str | Path, model: str | Path | None = None) -> Measured
             break
     logged_text = data.metadata.get("leveler", {}).get("config", "")
     if model is not None:
-        cfg, text = load_model(model)
+        cfg, text = load_config(model)
         source = str(model)
     elif logged_text:
         cfg, text, source = _config_from_text(logged_text, path), logged_text, "the log's config"

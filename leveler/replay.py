@@ -59,7 +59,10 @@ def _asd_or_none(x: np.ndarray, fs_hz: float, f_hz: float) -> float | None:
         return None
 
 
-def replay(meas: Measured, gains: tuple[float, float, float] | None = None) -> dict[str, Any]:
+def replay(meas: Measured, gains: tuple[float, float, float] | None = None
+           ) -> tuple[dict[str, Any], Predictor, slice]:
+    """The metrics of one replay (and the what-if), with the predictor and the analysed
+    span for whoever plots or writes it."""
     pred = Predictor(meas.config.plant, meas)
     skip = warmup_samples(meas, pred)
     span = slice(skip, len(meas.y_m))
@@ -88,7 +91,7 @@ def replay(meas: Measured, gains: tuple[float, float, float] | None = None) -> d
             "predicted_rms_m": float(np.std(y_new)),
             "measured_rms_m": float(np.std(y_old)),
         }
-    return result, pred, span  # type: ignore[return-value]
+    return result, pred, span
 
 
 def write_replay_log(path: str | Path, meas: Measured, pred: Predictor) -> None:
