@@ -7,7 +7,7 @@ CONFIG ?= config/sim.toml
 
 INSTALL_PYTHON ?= /usr/bin/python3
 
-.PHONY: run test test-slow bench lint clean install systemd-deps device-deps test-systemd
+.PHONY: run test test-slow bench bench-modbus lint clean install systemd-deps device-deps test-systemd
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null || { echo "need $(PYTHON) (apt-get install python3 python3-venv)"; exit 1; }
@@ -28,6 +28,10 @@ test-slow: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python bench/run.py
+
+# 100 Hz over Modbus TCP on loopback for 10 minutes (and the sim backend as baseline): 20 min.
+bench-modbus: $(STAMP)
+	$(BIN)/python bench/modbus_loop.py 600
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
