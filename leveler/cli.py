@@ -9,6 +9,7 @@ from collections.abc import Sequence
 from leveler.client import ClientError
 from leveler.config import ConfigError
 from leveler.durations import parse_duration
+from leveler.emufaults import parse_fault
 from leveler.errors import ControlError, LogError
 
 
@@ -305,11 +306,18 @@ def build_parser() -> argparse.ArgumentParser:
         "[sensor.modbus] host:port (input registers: the sensor; holding registers: the "
         "piezo). serial: a piezo amplifier ([actuator.serial] protocol) and a sensor "
         "controller on pseudo-terminals, linked at the config's port paths (which must be "
-        "free paths, e.g. /tmp/leveler-piezo, not real devices). Runs until Ctrl-C.")
+        "free paths, e.g. /tmp/leveler-piezo, not real devices); modbus with transport = "
+        "\"rtu\" serves a pty linked at serial_port. Runs until Ctrl-C.")
     em.add_argument("kind", choices=["modbus", "serial"], help="which protocol to serve")
     em.add_argument("--config", required=True, help="the lab config to serve")
     em.add_argument("--seed", type=int, default=None,
                     help="disturbance and noise seed (default: [sim] seed)")
+    em.add_argument("--fault", action="append", default=[], type=parse_fault,
+                    metavar="T:KIND[:COUNT]",
+                    help="spoil COUNT (default 1) replies from T seconds after the start; "
+                    "repeatable. modbus KINDs: no_reply, exception (code 4), garbage, drop. "
+                    "serial KINDs: piezo.X or sensor.X with X one of no_reply, garbage, "
+                    "partial_line, drop, error. E.g. --fault 30:garbage --fault 60:exception:2")
     em.set_defaults(func=_cmd_emulate)
     _add_control_commands(sub)
     return parser

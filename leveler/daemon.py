@@ -84,7 +84,7 @@ class Daemon:
         self.dt = 1.0 / self.cfg.loop.rate_hz
         pid = PID(self.cfg.controller.pid_config(), initial_output_v=self.stand.actuator.safe_v)
         self.loop = Loop(self.stand.sensor, self.stand.actuator, pid, self.dt, [self.log],
-                         self.stand.truth)
+                         self.stand.truth, fault_after_errors=self.cfg.loop.fault_after_errors)
         self._was_engaged = False  # the state a fault interrupted, for resuming after it
         self._reconnect_wait_s = 0.0  # 0: not in fault (or the fault has just come)
         self._next_reconnect = 0.0
@@ -165,6 +165,7 @@ class Daemon:
             "uptime_s": round(time.monotonic() - self.started_mono, 3),
             "state": self.loop.state,
             "fault_reason": self.loop.fault_reason,
+            "driver_errors": dict(self.loop.errors),
             "sample": s,
             "tilt_rad": (s.sensor_m / (pend.amplification * pend.sensor_arm_m)
                          if s is not None else None),
@@ -308,12 +309,14 @@ class Daemon:
         tilt_rad = s.sensor_m / (pend.amplification * pend.sensor_arm_m)
         st = self.clock.stats()
         log = "" if self.log.healthy else f"  LOG FAULT: {self.log.last_error}"
+        errors = sum(self.loop.errors.values())
         return (
             f"t={s.t_s:9.1f} s  {s.state:<7}  sensor={s.sensor_m * 1e9:+9.2f} nm  "
             f"tilt={tilt_rad * 1e9:+8.2f} nrad  piezo={s.applied_v:7.3f} V"
             f"{' SAT' if s.saturated else ''}  period p50/p99/max="
             f"{st['period_p50_s'] * 1e3:.2f}/{st['period_p99_s'] * 1e3:.2f}/"
             f"{st['period_max_s'] * 1e3:.2f} ms  overruns={self.clock.overruns}  "
+            f"{f'driver_errors={errors}  ' if errors else ''}"
             f"logged={self.log.samples_written}{log}"
         )
 
@@ -375,7 +378,8 @@ class Daemon:
             reason = self.stop_reason or "finished"
             if loop.state == ENGAGED:
                 loop.disengage(t, reason)
-            loop.emit("stop", reason, t, overruns=clock.overruns)
+            loop.emit("stop", reason, t, overruns=clock.overruns,
+                      sensor_errors=loop.errors["sensor"], actuator_errors=loop.errors["actuator"])
             self.server.close()
             self.log.close()
             self.stand.close()

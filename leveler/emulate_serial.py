@@ -57,8 +57,12 @@ class SensorFormat:
         return f"{x:.{self.decimals}f}" if self.decimals else str(round(x))
 
 
-class _Pty:
-    """One pty pair behind a stable symlink; `reopen` is a pulled and replugged cable."""
+class Pty:
+    """One raw pty pair behind a stable symlink; `reopen` is a pulled and replugged cable.
+
+    The emulator holds the slave open too, so the master never sees EIO while no client
+    has the port open, and a client's unread input survives until its next open flushes it.
+    """
 
     def __init__(self, path: str) -> None:
         self.path = path
@@ -91,12 +95,16 @@ class _Pty:
                 pass  # already closed
         self.master = self.slave = -1
 
+    def read(self) -> bytes:
+        """Whatever the client has written since the last read (b"" if nothing)."""
+        try:
+            return os.read(self.master, 4096)
+        except BlockingIOError:
+            return b""
+
     def lines(self) -> list[str]:
         """Complete command lines received so far; CR, LF or both end a line."""
-        try:
-            self._buffer += os.read(self.master, 4096)
-        except BlockingIOError:
-            return []
+        self._buffer += self.read()
         *done, self._buffer = re.split(rb"[\r\n]", self._buffer)
         return [s.decode("ascii", "replace").strip() for s in done if s.strip()]
 
@@ -222,8 +230,8 @@ class SerialEmulator:
         self.vlimit_v = vlimit_v
         self.received_v: list[float] = []
         self._dir = tempfile.mkdtemp(prefix="leveler-emulate-")
-        self._ptys = {"piezo": _Pty(os.path.join(self._dir, "piezo")),
-                      "sensor": _Pty(os.path.join(self._dir, "sensor"))}
+        self._ptys = {"piezo": Pty(os.path.join(self._dir, "piezo")),
+                      "sensor": Pty(os.path.join(self._dir, "sensor"))}
         piezo = _ThorlabsMDT(self) if protocol == "thorlabs_mdt" else _PIGCS2(self)
         self._devices: dict[str, _Device] = {
             "piezo": piezo, "sensor": _SensorController(self, sensor_format or SensorFormat())}

@@ -1,8 +1,10 @@
 """One control cycle: read -> update -> write -> log, with time passed in.
 
 The loop owns the lifecycle state (idle, engaged, fault). A driver error never escapes a
-cycle: the actuator goes to its safe state, the loop enters `fault` and logs why. The
-daemon, `leveler sim` and the tests all drive this same class.
+cycle. One bad reply (a garbled line, a Modbus exception, a timeout) is counted and logged and
+the actuator holds its voltage for that cycle; `fault_after_errors` errors in a row mean the
+device is gone: the actuator goes to its safe state, the loop enters `fault` and logs why.
+The daemon, `leveler sim` and the tests all drive this same class.
 """
 
 from __future__ import annotations
@@ -11,11 +13,12 @@ import math
 from collections.abc import Callable
 from typing import Protocol
 
-from leveler.drivers.base import Actuator, DriverError, Reading, Sensor, Status
+from leveler.drivers.base import Actuator, Block, DriverError, Reading, Sensor, Status
 from leveler.pid import PID
 from leveler.records import Event, Sample, Truth
 
 IDLE, ENGAGED, FAULT = "idle", "engaged", "fault"
+ERROR_EVENT_INTERVAL_S = 1.0  # at most one driver_error event per second; the counts are exact
 
 
 class Sink(Protocol):
@@ -32,7 +35,10 @@ class Loop:
     """The controller manager: drivers, PID and state, one `cycle(t)` at a time."""
 
     def __init__(self, sensor: Sensor, actuator: Actuator, pid: PID, dt_s: float,
-                 sinks: list[Sink], truth: Callable[[int, float], Truth] | None = None) -> None:
+                 sinks: list[Sink], truth: Callable[[int, float], Truth] | None = None,
+                 *, fault_after_errors: int = 1) -> None:
+        if fault_after_errors < 1:
+            raise ValueError(f"fault_after_errors must be >= 1, got {fault_after_errors}")
         self.sensor = sensor
         self.actuator = actuator
         self.pid = pid
@@ -45,6 +51,11 @@ class Loop:
         self.held_v = actuator.safe_v
         self.last: Sample | None = None
         self._wall_ns = 0
+        self.fault_after_errors = fault_after_errors
+        self.errors = {"sensor": 0, "actuator": 0}  # driver errors outside fault, since start
+        self._in_a_row = 0
+        self._unreported = 0
+        self._next_error_event_s = -math.inf
 
     def emit(self, kind: str, reason: str, t_s: float, **detail: object) -> None:
         """Log a discrete event to every sink."""
@@ -72,6 +83,7 @@ class Loop:
         if self.state == FAULT:
             self.held_v = self.actuator.safe_v
             self.fault_reason = ""
+            self._in_a_row = 0
             self._transition(IDLE, reason, t_s)
 
     def _transition(self, new: str, reason: str, t_s: float) -> None:
@@ -88,14 +100,39 @@ class Loop:
             self.fault_reason = reason
             self._transition(FAULT, reason, t_s)
 
+    def _driver_error(self, t_s: float, device: str, what: str) -> None:
+        """Count an error; fault on the `fault_after_errors`-th in a row, else log it. In
+        fault the device is known to be gone: its failures are neither counted nor logged."""
+        if self.state == FAULT:
+            return
+        self.errors[device] += 1
+        self._in_a_row += 1
+        if self._in_a_row >= self.fault_after_errors:
+            self._unreported = 0  # the fault event tells the end of the run
+            self._fault(t_s, what if self._in_a_row == 1 else
+                        f"{what} ({self._in_a_row} driver errors in a row)")
+            return
+        self._unreported += 1
+        if t_s >= self._next_error_event_s:
+            self._report_errors(t_s, f"{what}; voltage held", device=device)
+
+    def _report_errors(self, t_s: float, reason: str, **detail: object) -> None:
+        self.emit("driver_error", reason, t_s, in_a_row=self._in_a_row,
+                  since_last_event=self._unreported, sensor_errors=self.errors["sensor"],
+                  actuator_errors=self.errors["actuator"], **detail)
+        self._unreported = 0
+        self._next_error_event_s = t_s + ERROR_EVENT_INTERVAL_S
+
     def cycle(self, t_s: float, wall_ns: int) -> Sample:
         """Run one cycle at loop time t_s (s) and wall time wall_ns; never raises DriverError."""
         self._wall_ns = wall_ns
+        errors_before = self.errors["sensor"] + self.errors["actuator"]
         try:
-            reading = self.sensor.read(t_s)
+            got = self.sensor.read(t_s)
+            reading = got.mean() if isinstance(got, Block) else got  # decimate to the loop rate
         except DriverError as exc:
             reading = Reading(t_s, 0, math.nan, Status.FAULT)
-            self._fault(t_s, f"sensor read failed: {exc}")
+            self._driver_error(t_s, "sensor", f"sensor read failed: {exc}")
         pid = self.pid
         p = i = d = 0.0
         saturated = False
@@ -112,8 +149,13 @@ class Loop:
                 applied = self.actuator.write(command, t_s)
                 self.held_v = command
             except DriverError as exc:
-                self._fault(t_s, f"actuator write failed: {exc}")
+                self._driver_error(t_s, "actuator", f"actuator write failed: {exc}")
                 applied = math.nan
+        if self.errors["sensor"] + self.errors["actuator"] == errors_before:
+            self._in_a_row = 0  # a cycle without a driver error ends a run of them
+        if self._unreported and t_s >= self._next_error_event_s:  # the rest of a burst
+            self._report_errors(t_s, f"{self._unreported} more driver error(s) in the last "
+                                f"{ERROR_EVENT_INTERVAL_S:g} s; voltage held")
         sample = Sample(self.seq, t_s, reading.raw_counts, reading.value_m, int(reading.status),
                         setpoint, setpoint - reading.value_m, p, i, d, command, applied,
                         saturated, self.state)

@@ -9,6 +9,7 @@ from typing import Literal
 
 from leveler.config import ConfigError, build, load_toml, non_negative, positive
 from leveler.drivers.modbus_config import ModbusActuatorConfig, ModbusSensorConfig
+from leveler.drivers.nidaq_config import NidaqActuatorConfig, NidaqSensorConfig
 from leveler.drivers.serial_config import SerialPiezoConfig, SerialSensorConfig
 from leveler.pid import PIDConfig, PIDGains
 from leveler.sim.params import PlantParams
@@ -20,6 +21,7 @@ class LoopConfig:
     status_interval_s: float = positive(5.0)
     engage_on_start: bool = True
     ready_samples: int = field(default=10, metadata={"ge": 1})
+    fault_after_errors: int = field(default=3, metadata={"ge": 1})
     reconnect_min_s: float = positive(2.0)
     reconnect_max_s: float = positive(60.0)
     resume_after_reconnect: bool = True
@@ -84,9 +86,10 @@ class ControllerConfig:
 class SensorConfig:
     """Where readings come from: the simulated plant or a device (its table below)."""
 
-    backend: Literal["sim", "modbus", "serial"] = "sim"
+    backend: Literal["sim", "modbus", "serial", "nidaq"] = "sim"
     modbus: ModbusSensorConfig | None = None
     serial: SerialSensorConfig | None = None
+    nidaq: NidaqSensorConfig | None = None
 
     def __post_init__(self) -> None:
         if self.backend != "sim" and getattr(self, self.backend) is None:
@@ -97,10 +100,11 @@ class SensorConfig:
 class ActuatorConfig:
     """What moves the piezo. safe_v is the simulated piezo's; a device table has its own."""
 
-    backend: Literal["sim", "modbus", "serial"] = "sim"
+    backend: Literal["sim", "modbus", "serial", "nidaq"] = "sim"
     safe_v: float = 75.0
     modbus: ModbusActuatorConfig | None = None
     serial: SerialPiezoConfig | None = None
+    nidaq: NidaqActuatorConfig | None = None
 
     def __post_init__(self) -> None:
         if self.backend != "sim" and getattr(self, self.backend) is None:

@@ -45,6 +45,11 @@ def open_stand(cfg: Config, seed: int | None = None) -> Stand:
 
         assert cfg.sensor.serial is not None
         sensor = SerialSensor(cfg.sensor.serial)
+    elif cfg.sensor.backend == "nidaq":
+        from leveler.drivers.nidaq import NidaqSensor
+
+        assert cfg.sensor.nidaq is not None
+        sensor = NidaqSensor(cfg.sensor.nidaq)
     if cfg.actuator.backend == "modbus":
         from leveler.drivers.modbus import ModbusActuator
 
@@ -55,6 +60,11 @@ def open_stand(cfg: Config, seed: int | None = None) -> Stand:
 
         assert cfg.actuator.serial is not None
         actuator = SerialPiezo(cfg.actuator.serial)
+    elif cfg.actuator.backend == "nidaq":
+        from leveler.drivers.nidaq import NidaqActuator
+
+        assert cfg.actuator.nidaq is not None
+        actuator = NidaqActuator(cfg.actuator.nidaq)
     if cfg.sensor.backend != "sim":
         return Stand(sensor, actuator, None)
     dt_s = 1.0 / cfg.loop.rate_hz

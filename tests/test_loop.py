@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import replace
 
 import numpy as np
 import pytest
+from test_backend_parity import lock_in_amplitude
 
 from leveler.clock import VirtualClock
-from leveler.drivers.base import DriverError, Reading
+from leveler.drivers.base import Block, DriverError, Reading
 from leveler.loop import ENGAGED, FAULT, IDLE, Loop
 from leveler.pid import PID
 from leveler.records import Event, Sample, Truth
@@ -116,6 +118,83 @@ def test_sensor_fault_makes_the_actuator_safe_and_is_logged() -> None:
     assert mem.samples[-1].state == FAULT
 
 
+class GlitchySensor(FailingSensor):
+    """Fails exactly on the listed reads (1-based): garbled replies, not a pulled cable."""
+
+    def __init__(self, inner, bad: set[int]) -> None:  # type: ignore[no-untyped-def]
+        super().__init__(inner, fail_at=0)
+        self.bad = bad
+
+    def read(self, t_s: float) -> Reading:
+        self.n += 1
+        if self.n in self.bad:
+            raise DriverError(f"garbled reply #{self.n}")
+        return self.inner.read(t_s)
+
+
+class GlitchyActuator:
+    """Refuses exactly the listed writes (1-based); otherwise the real simulated actuator."""
+
+    def __init__(self, inner, bad: set[int]) -> None:  # type: ignore[no-untyped-def]
+        self.inner, self.bad, self.n = inner, bad, 0
+        self.safe_v = inner.safe_v
+
+    def write(self, command_v: float, t_s: float) -> float:
+        self.n += 1
+        if self.n in self.bad:
+            raise DriverError(f"exception reply to write #{self.n}")
+        return float(self.inner.write(command_v, t_s))
+
+    def make_safe(self) -> None:
+        self.inner.make_safe()
+
+
+def test_isolated_driver_errors_hold_the_voltage_are_counted_and_logged_sparingly() -> None:
+    loop, mem, clock = make_loop()
+    loop.fault_after_errors = 3
+    bad_reads = {20, 21, 40, 41, 42 + 1000}  # two pairs in a row, then one much later
+    bad_reads |= set(range(60, 80, 2))  # every other read for 2 s at 10 Hz
+    loop.sensor = GlitchySensor(loop.sensor, bad_reads)
+    loop.actuator = GlitchyActuator(loop.actuator, {30, 31, 50})  # type: ignore[assignment]
+    run(loop, clock, 1)
+    loop.engage(0.0)
+    run(loop, clock, 119)
+    assert loop.state == ENGAGED
+    n_bad_reads = len([n for n in bad_reads if n <= 120])
+    assert loop.errors == {"sensor": n_bad_reads, "actuator": 3}
+    s = mem.samples
+    for n in (20, 21, 40, 41):  # the read failed: no update, the held voltage is written again
+        assert math.isnan(s[n - 1].sensor_m) and s[n - 1].status == 4
+        assert s[n - 1].command_v == s[n - 2].command_v
+    assert math.isnan(s[29].applied_v) and math.isnan(s[30].applied_v)  # writes 30, 31 failed
+    assert math.isfinite(s[31].applied_v)  # write 32 went through
+    errs = [e for e in mem.events if e.kind == "driver_error"]
+    # At most one event per second of loop time, and together they account for every error.
+    assert all(b.t_s - a.t_s >= 1.0 - 1e-9 for a, b in itertools.pairwise(errs))
+    assert errs[0].detail["device"] == "sensor" and "garbled reply #20" in errs[0].reason
+    reported = sum(e.detail["since_last_event"] for e in errs)
+    assert reported + loop._unreported == n_bad_reads + 3
+    assert len(errs) < n_bad_reads + 3  # the every-other-read burst was summarised
+
+
+def test_errors_in_a_row_fault_and_name_the_count() -> None:
+    loop, mem, clock = make_loop()
+    loop.fault_after_errors = 3
+    loop.sensor = GlitchySensor(loop.sensor, {10, 11, 12})
+    run(loop, clock, 1)
+    loop.engage(0.0)
+    loop.actuator.write(90.0, 0.0)
+    run(loop, clock, 10)
+    assert loop.state == ENGAGED  # two in a row: ridden through
+    run(loop, clock, 1)
+    assert loop.state == FAULT
+    fault = [e for e in mem.events if e.detail.get("new") == FAULT]
+    assert "garbled reply #12 (3 driver errors in a row)" in fault[0].reason
+    assert loop.actuator.plant.v_target == loop.actuator.safe_v  # type: ignore[attr-defined]
+    run(loop, clock, 5)  # good reads again, but a fault waits for reconnect or reset
+    assert loop.state == FAULT and loop.errors["sensor"] == 3
+
+
 @pytest.mark.parametrize("seed", [0, 7])
 def test_same_seed_gives_identical_samples(seed: int) -> None:
     def once() -> list[tuple[float, ...]]:
@@ -132,3 +211,42 @@ def test_same_seed_gives_identical_samples(seed: int) -> None:
         return [(s.sensor_m, s.command_v, s.applied_v) for s in mem.samples]
 
     assert once() == once()
+
+
+def _sub_count_stand(samples_per_cycle: int) -> Config:
+    """A 12-bit ADC (24 nm a count at the sensor), zero mid-count, a 100 s cooler sawtooth
+    of 0.66 count peak to peak at the sensor and no thermal wander: a signal that never
+    crosses a step edge on its own."""
+    cfg = Config()
+    pl = cfg.plant
+    lsb_v = (pl.sensor.adc_max_v - pl.sensor.adc_min_v) / (2**12 - 1)
+    sensor_m_per_rad = pl.pendulum.amplification * pl.pendulum.sensor_arm_m
+    pl = replace(pl, sensor=replace(pl.sensor, adc_bits=12, offset_v=lsb_v / 2,
+                                    samples_per_cycle=samples_per_cycle),
+                 thermal=replace(pl.thermal, random_walk_k_per_sqrt_s=0.0, daily_amplitude_k=0.0),
+                 cooler=replace(pl.cooler, period_s=100.0, peak_to_peak_rad=0.66 * (
+                     lsb_v / pl.sensor.gain_v_per_m) / sensor_m_per_rad),
+                 platform=replace(pl.platform, initial_tilt_rad=0.0))
+    return replace(cfg, plant=pl)
+
+
+@pytest.mark.parametrize("samples_per_cycle", [1, 256])
+def test_block_reads_averaged_by_the_loop_resolve_below_one_adc_count(
+        samples_per_cycle: int) -> None:
+    cfg = _sub_count_stand(samples_per_cycle)
+    loop, mem, clock = make_loop(cfg)
+    block = loop.sensor.read(0.0)
+    assert (isinstance(block, Block) and len(block.values_m) == 256) == (samples_per_cycle > 1)
+    run(loop, clock, 3000)  # 300 s, loop open: the sensor watches the cooler
+    t = np.array([s.t_s for s in mem.samples])
+    y = np.array([s.sensor_m for s in mem.samples])
+    truth_m = np.array([tr.pendulum_rad for tr in mem.truths]) * cfg.plant.pendulum.sensor_arm_m
+    lsb_m = cfg.plant.sensor.lsb_m
+    f = 1 / cfg.plant.cooler.period_s
+    a_true, a_read = lock_in_amplitude(t, truth_m, f), lock_in_amplitude(t, y, f)
+    if samples_per_cycle == 1:  # stuck on one count: the cooler is invisible
+        assert len(np.unique(y)) <= 2 and a_read < 0.2 * a_true
+    else:  # the mean of 256 dithered conversions follows it, ~1/16 count fine
+        assert len(np.unique(y)) > 100
+        assert a_read == pytest.approx(a_true, rel=0.1)
+        assert np.std(y - truth_m) < 0.1 * lsb_m

@@ -189,6 +189,25 @@ def test_link_fault_is_a_clear_error_then_backoff_then_recovery(rig: Rig, kind: 
     _assert_reads_plant(rig, sensor)
 
 
+def test_a_glitch_after_good_replies_reconnects_at_once_a_second_one_backs_off(
+        rig: Rig) -> None:
+    sensor = rig.sensor()
+    _assert_reads_plant(rig, sensor)  # the device has answered
+    rig.emu.inject("garbage")
+    with pytest.raises(DriverError, match="reconnecting at the next request"):
+        sensor.read(0.0)
+    _assert_reads_plant(rig, sensor)  # the next cycle's read reconnects and works
+    rig.emu.inject("drop", count=2)
+    with pytest.raises(DriverError, match=r"connection lost: .*reconnecting at the next request"):
+        sensor.read(0.0)
+    with pytest.raises(DriverError, match=r"reconnecting in 0\.20 s"):
+        sensor.read(0.0)  # failed again right after reconnecting: now it waits
+    with pytest.raises(DriverError, match="next reconnect attempt in"):
+        sensor.read(0.0)
+    time.sleep(rig.sensor_cfg.reconnect_min_s)
+    _assert_reads_plant(rig, sensor)
+
+
 def test_failed_write_reads_the_ao_back_before_the_next_one(rig: Rig) -> None:
     actuator = rig.actuator()
     actuator.write(80.0, 0.0)

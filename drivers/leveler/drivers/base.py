@@ -11,6 +11,8 @@ import enum
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
+import numpy as np
+
 
 class DriverError(RuntimeError):
     """A device failed to connect, read or write; the message says which and why."""
@@ -36,13 +38,32 @@ class Reading:
     status: Status = Status.OK
 
 
+@dataclass(frozen=True, slots=True)
+class Block:
+    """Several conversions from one cycle (oldest first), for the loop to average down.
+
+    With noise of about one count or more acting as dither, the mean of n conversions
+    resolves steps sqrt(n) times finer than one ADC count, which a single conversion cannot.
+    """
+
+    t_s: float
+    raw_counts: np.ndarray
+    values_m: np.ndarray
+    status: Status = Status.OK
+
+    def mean(self) -> Reading:
+        """The block as one reading: the mean displacement, the nearest whole count."""
+        return Reading(self.t_s, round(float(np.mean(self.raw_counts))),
+                       float(np.mean(self.values_m)), self.status)
+
+
 @runtime_checkable
 class Sensor(Protocol):
-    """A displacement sensor read once per loop cycle."""
+    """A displacement sensor read once per loop cycle (one conversion or a block of them)."""
 
     def connect(self) -> None: ...
 
-    def read(self, t_s: float) -> Reading: ...
+    def read(self, t_s: float) -> Reading | Block: ...
 
     def close(self) -> None: ...
 

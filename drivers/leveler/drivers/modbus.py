@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+import weakref
 from collections.abc import Callable
 from typing import Literal
 
@@ -21,6 +22,7 @@ from pymodbus.exceptions import ConnectionException, ModbusIOException
 from pymodbus.pdu import ModbusPDU
 
 from leveler.drivers.base import DriverError, Reading, Status
+from leveler.drivers.limits import slew_window
 from leveler.drivers.modbus_config import (
     ModbusActuatorConfig,
     ModbusChannelConfig,
@@ -45,8 +47,10 @@ EXCEPTION_MEANINGS = {
 class ModbusLink:
     """One Modbus client with reconnect backoff.
 
-    After a failure the link closes and waits reconnect_min_s, doubling up to reconnect_max_s
-    while failures continue; a call during the wait fails at once instead of blocking. A call
+    After a failure the link closes. The first failure after good replies is taken for a
+    glitch (a garbled frame, a lost packet): the next call reconnects at once, so the loop
+    rides through it. Further failures wait reconnect_min_s, doubling up to reconnect_max_s;
+    a call during the wait fails at once instead of blocking. A call
     blocks at most about timeout_s x (retries + 1), plus timeout_s for a reconnect attempt.
     """
 
@@ -54,8 +58,11 @@ class ModbusLink:
                  clock_s: Callable[[], float] = time.monotonic) -> None:
         self.cfg = cfg
         self._client = _make_client(cfg)
+        if cfg.transport == "rtu":
+            _rtu_links.add(self)
         self._clock_s = clock_s
         self._backoff_s = 0.0
+        self._answered = False  # the device has answered since the last failure
         self._retry_at_s = -math.inf
         self._last_error = "not connected yet"
 
@@ -91,8 +98,9 @@ class ModbusLink:
         except (ModbusException, OSError) as exc:
             self._fail(self._describe(exc))
             raise DriverError(f"{self.cfg.where}: {what}: {self._last_error}; "
-                              f"reconnecting in {self._backoff_s:.2f} s") from None
+                              f"reconnecting {self._when()}") from None
         self._backoff_s = 0.0  # the device answered: the link is good
+        self._answered = True
         if response.isError():
             code = response.exception_code
             meaning = EXCEPTION_MEANINGS.get(code, "unknown exception code")
@@ -109,14 +117,22 @@ class ModbusLink:
         if not self._client.connect():
             self._fail("cannot connect (refused, unreachable or no such port)")
             raise DriverError(f"{self.cfg.where}: {self._last_error}; "
-                              f"retrying in {self._backoff_s:.2f} s")
+                              f"retrying {self._when()}")
 
     def _fail(self, reason: str) -> None:
         self._client.close()  # a late reply must not be taken for the next request's
         cfg = self.cfg
-        self._backoff_s = min(max(2.0 * self._backoff_s, cfg.reconnect_min_s), cfg.reconnect_max_s)
+        if self._answered:  # the first failure after good replies: a glitch, retry at once
+            self._answered = False
+            self._backoff_s = 0.0
+        else:
+            self._backoff_s = min(max(2.0 * self._backoff_s, cfg.reconnect_min_s),
+                                  cfg.reconnect_max_s)
         self._retry_at_s = self._clock_s() + self._backoff_s
         self._last_error = reason
+
+    def _when(self) -> str:
+        return f"in {self._backoff_s:.2f} s" if self._backoff_s else "at the next request"
 
     def _describe(self, exc: Exception) -> str:
         if isinstance(exc, ModbusIOException):
@@ -128,10 +144,30 @@ class ModbusLink:
         return f"{type(exc).__name__}: {exc}"
 
 
+# The live RTU links: channels on one serial port share its client (an AI and an AO module on
+# one RS-485 line, or one module serving both). pyserial opens a port for exclusive use, so a
+# second client could not connect, and two readers would steal each other's replies. A failure
+# on one channel closes the line for both; the other reopens it on its next call (its own
+# backoff). Links, not clients, are tracked: a client sits in a reference cycle and outlives
+# its last link until the garbage collector runs.
+_rtu_links: weakref.WeakSet[ModbusLink] = weakref.WeakSet()
+_LINE_SETTINGS = ("baudrate", "timeout_s", "retries")  # the client's, so shared
+
+
 def _make_client(cfg: ModbusChannelConfig) -> ModbusTcpClient | ModbusSerialClient:
     if cfg.transport == "tcp":
         return ModbusTcpClient(cfg.host, port=cfg.port, timeout=cfg.timeout_s,
                                retries=cfg.retries)
+    for other in _rtu_links:
+        if other.cfg.serial_port != cfg.serial_port:
+            continue
+        theirs = [getattr(other.cfg, key) for key in _LINE_SETTINGS]
+        ours = [getattr(cfg, key) for key in _LINE_SETTINGS]
+        if theirs != ours:
+            raise ValueError(f"{cfg.where}: another channel on this serial port has "
+                             f"{', '.join(_LINE_SETTINGS)} = {theirs}, this one {ours}; "
+                             "channels sharing a line must agree")
+        return other._client
     return ModbusSerialClient(cfg.serial_port, framer=FramerType.RTU, baudrate=cfg.baudrate,
                               timeout=cfg.timeout_s, retries=cfg.retries)
 
@@ -186,11 +222,8 @@ class ModbusActuator:
             self._read_back(force=False)
         assert self._last_counts is not None
         last_v = cfg.counts_to_piezo_v(self._last_counts)
-        dt_s = t_s - self._last_t_s
-        max_dv = cfg.slew_v_per_s * dt_s if dt_s > 0 else 0.0  # NaN, first or backwards: hold
-        lo, hi = max(cfg.min_v, last_v - max_dv), min(cfg.max_v, last_v + max_dv)
-        if lo > hi:  # the AO sits outside the piezo range: the range comes first
-            lo, hi = cfg.min_v, cfg.max_v
+        lo, hi = slew_window(last_v, t_s - self._last_t_s, cfg.min_v, cfg.max_v,
+                             cfg.slew_v_per_s)
         counts = self._quantize(last_v if math.isnan(command_v) else command_v, lo, hi)
         self._send(counts, force=False)
         if not (math.isnan(t_s) or t_s <= self._last_t_s):  # slew time never runs backwards

@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 import time
 
-from leveler.drivers.base import DriverError, Reading, Status
+from leveler.drivers.base import Block, DriverError, Reading, Status
 from leveler.records import Truth
 from leveler.sim.plant import Plant
 
@@ -20,7 +20,8 @@ class SimulatedStand:
     def __init__(self, plant: Plant, safe_v: float, *, hang_at_s: float = math.inf,
                  hang_for_s: float = 0.0, fail_at_s: float = math.inf) -> None:
         """Fault injection: a read stalls for hang_for_s at hang_at_s (a hung device, for
-        the watchdog), and fails once at fail_at_s (a pulled cable, for fault handling)."""
+        the watchdog); reads fail from fail_at_s until the next connect() (a pulled cable,
+        put back when the daemon reconnects, for fault handling)."""
         pz = plant.params.piezo
         if not pz.min_v <= safe_v <= pz.max_v:
             raise DriverError(
@@ -31,6 +32,7 @@ class SimulatedStand:
         self._hang_at_s = hang_at_s
         self._hang_for_s = hang_for_s
         self._fail_at_s = fail_at_s
+        self._unplugged = False
 
     @property
     def safe_v(self) -> float:
@@ -38,23 +40,29 @@ class SimulatedStand:
 
     def connect(self) -> None:
         self._connected = True
+        self._unplugged = False
 
     def close(self) -> None:
         self._connected = False
 
-    def read(self, t_s: float) -> Reading:
+    def read(self, t_s: float) -> Reading | Block:
         if not self._connected:
             raise DriverError("simulated sensor read before connect()")
         if t_s >= self._hang_at_s:
             self._hang_at_s = math.inf
             time.sleep(self._hang_for_s)  # the device stops answering, once
         if t_s >= self._fail_at_s:
+            self._unplugged = True
             self._fail_at_s = math.inf
-            raise DriverError(f"injected sensor fault at t = {t_s:.3f} s ([sim] fail_at_s)")
+        if self._unplugged:
+            raise DriverError("injected sensor fault: no reply since [sim] fail_at_s")
         plant = self.plant
         target = round(t_s / plant.dt_s)
         while plant.n < target:
             plant.step()
+        if plant.samples_per_cycle > 1:
+            counts_n, values_m, railed = plant.measure_block()
+            return Block(t_s, counts_n, values_m, Status.RAILED if railed else Status.OK)
         counts, value_m, railed = plant.measure()
         return Reading(t_s, counts, value_m, Status.RAILED if railed else Status.OK)
 

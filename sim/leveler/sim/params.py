@@ -123,6 +123,7 @@ class SensorParams:
     adc_bits: int = field(default=16, metadata={"ge": 2, "le": 32})
     adc_min_v: float = -10.0
     adc_max_v: float = 10.0
+    samples_per_cycle: int = field(default=1, metadata={"ge": 1, "le": 4096})
 
     def __post_init__(self) -> None:
         if not self.adc_min_v < self.adc_max_v:

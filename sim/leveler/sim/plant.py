@@ -10,6 +10,8 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
+import numpy as np
+
 from leveler.records import Truth
 from leveler.sim.disturbance import Block, Disturbances
 from leveler.sim.effects import ExtraResonance
@@ -36,6 +38,11 @@ class Plant:
         self._gain, self._offset = se.gain_v_per_m, se.offset_v
         self._adc_min, self._lsb = se.adc_min_v, se.lsb_v
         self._top = 2**se.adc_bits - 1
+        self.samples_per_cycle = se.samples_per_cycle
+        # The spread of the fast conversions about each cycle's noisy value; a stream of its
+        # own, so oversampling leaves every other random draw of a seed unchanged.
+        self._rng_sub = np.random.default_rng([seed, 0x5AB])
+        self._sub_sigma_m = se.noise_m_per_rthz * math.sqrt(0.5 / dt_s * se.samples_per_cycle)
         self._offset_tilt = params.platform.initial_tilt_rad
         self._dist = Disturbances(params, dt_s, seed)
         self._block: Block = self._dist.next_block()
@@ -87,14 +94,35 @@ class Plant:
             self._block = self._dist.next_block()
             self._i = 0
 
-    def measure(self) -> tuple[int, float, bool]:
-        """Sensor through the ADC: (counts, metres the counts mean, railed)."""
+    def _sensed_m(self) -> float:
+        """What the sensor's analog output says now, noise and sensor effects included."""
         b, i = self._block, self._i
         x = self._arm * self.pendulum.theta + self._extra_m + b.drift_m[i] + b.noise_m[i]
         if self._sensor_fx:  # after the noise: a coarse ADC digitizes the noisy signal
             t_s = self.n * self.dt_s
             for f in self._sensor_fx:
                 x = f(x, t_s)
+        return x
+
+    def measure_block(self) -> tuple[np.ndarray, np.ndarray, bool]:
+        """`samples_per_cycle` ADC conversions within this cycle: (counts, metres, railed).
+
+        White noise of the same density seen in an n times wider band has sqrt(n) times the
+        rms per conversion; the conversions spread about this cycle's noisy value so that
+        their mean before the ADC is exactly that value. So averaging them changes nothing
+        but the quantization, which the spread dithers away (sensor effects act on the
+        cycle's value, before the spread)."""
+        n = self.samples_per_cycle
+        z = self._rng_sub.standard_normal(n) * self._sub_sigma_m
+        x = self._sensed_m() + (z - z.mean())
+        counts = np.floor((self._gain * x + self._offset - self._adc_min) / self._lsb + 0.5)
+        railed = bool(counts.min() <= 0 or counts.max() >= self._top)
+        counts = np.clip(counts, 0, self._top).astype(np.int64)
+        return counts, (counts * self._lsb + self._adc_min - self._offset) / self._gain, railed
+
+    def measure(self) -> tuple[int, float, bool]:
+        """Sensor through the ADC, one conversion: (counts, metres the counts mean, railed)."""
+        x = self._sensed_m()
         counts = math.floor((self._gain * x + self._offset - self._adc_min) / self._lsb + 0.5)
         railed = counts <= 0 or counts >= self._top
         if counts < 0:
