@@ -64,6 +64,12 @@ def _cmd_diagnose(args: argparse.Namespace) -> int:
     return run_diagnose_command(args)
 
 
+def _cmd_modulate(args: argparse.Namespace) -> int:
+    from leveler.modulatecmd import run_modulate_command
+
+    return run_modulate_command(args)
+
+
 def _cmd_emulate(args: argparse.Namespace) -> int:
     from leveler.emulatecmd import run_emulate_command
 
@@ -167,6 +173,36 @@ def _add_control_commands(sub: argparse._SubParsersAction) -> None:  # type: ign
                    "the daemon")
     _add_socket(t)
     t.set_defaults(func=_cmd_tune)
+    m = sub.add_parser(
+        "modulate", help="square-wave tilt modulation by the piezo; the pendulum's response",
+        description="Drive the piezo in a square wave about the voltage it holds, with the "
+        "loop open, and measure the inverted pendulum's step: peak to peak, per piezo volt, "
+        "as platform tilt, and against what the config's piezo geometry (stroke / support "
+        "spacing) predicts. The running daemon executes it as a logged procedure (state "
+        "`modulating`, `procedure` events, every sample in the log); it refuses while the "
+        "loop is engaged unless --force, which opens the loop for the wave and closes it "
+        "again afterwards. `leveler stop` aborts a wave; a fault ends it with the piezo safe. "
+        "With --sim the same procedure runs on the simulated stand in virtual time.")
+    m.add_argument("--amplitude-v", type=float, required=True,
+                   help="piezo swing about the held voltage [V]: +amplitude for the first half "
+                   "of each period, -amplitude for the second (peak to peak = 2 x amplitude)")
+    m.add_argument("--period", type=_duration, required=True,
+                   help="square-wave period, e.g. 60s or 5min (at least 4 loop periods)")
+    m.add_argument("--cycles", type=int, default=3, help="number of periods (default: 3)")
+    m.add_argument("--force", action="store_true",
+                   help="modulate even if the loop is engaged (it closes again afterwards)")
+    m.add_argument("--json", action="store_true", help="print the result as one JSON object")
+    m.add_argument("--sim", action="store_true",
+                   help="run on the simulated stand in virtual time instead of the daemon")
+    m.add_argument("--config", default=None,
+                   help="with --sim: the stand's config (default: config/sim.toml)")
+    m.add_argument("--settle", type=_duration, default=0.0,
+                   help="with --sim: idle time before the wave (default: 0)")
+    m.add_argument("--seed", type=int, default=None,
+                   help="with --sim: disturbance and noise seed (default: [sim] seed)")
+    m.add_argument("--plot", default=None, help="with --sim: time-series plot (PNG)")
+    _add_socket(m)
+    m.set_defaults(func=_cmd_modulate)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -319,6 +355,57 @@ def build_parser() -> argparse.ArgumentParser:
                     "serial KINDs: piezo.X or sensor.X with X one of no_reply, garbage, "
                     "partial_line, drop, error. E.g. --fault 30:garbage --fault 60:exception:2")
     em.set_defaults(func=_cmd_emulate)
+
+    def _cmd_design_ip(args: argparse.Namespace) -> int:
+        from leveler.designcmd import run_design_ip_command
+
+        return run_design_ip_command(args)
+
+    design = sub.add_parser(
+        "design", help="the paper's design procedures (ip: inverted-pendulum counterweight)",
+        description="Design calculations from the paper, each a subcommand.")
+    dsub = design.add_subparsers(dest="design_command", required=True, metavar="DESIGN")
+    ip = dsub.add_parser(
+        "ip", help="inverted-pendulum tilt amplifier: amplification N against counterweight",
+        description="The paper's counterweight sweep (its Figure 8) with our geometry, not its "
+        "Simscape model: a flexure of stiffness k (config [plant.pendulum]) carries a frame "
+        "(mass m_f, centre of mass L_f above the pivot; default none) and a counterweight "
+        "m_cw at height h_cw, so m g L_cm = g (m_f L_f + m_cw h_cw). For each counterweight "
+        "mass it prints m g L_cm, the small-angle amplification N = 1 / (k / (m g L_cm) - 1) "
+        "and the N = theta / phi of the full balance m g L_cm sin(theta + phi) = k theta "
+        "solved at the reference tilt phi, with the equilibrium angle theta. The stability "
+        "limit m g L_cm = k (small-angle N -> infinity) is marked; heavier counterweights are "
+        "reported unstable. --target-n picks the mass for a requested N at phi (exactly, by "
+        "the balance's closed-form inverse). The default stand is a 185 g mass 49.6 mm above "
+        "a 0.1 N m/rad flexure: m g L_cm = 0.09 N m/rad, N = 9, the paper's example.",
+        epilog="Example: leveler design ip --target-n 10 --plot ip.png. Units are SI; the "
+        "table shows theta in mrad, the plot masses in g.")
+    ip.add_argument("--config", default="config/sim.toml",
+                    help="config whose [plant.pendulum] gives k and g; its com_length_m is "
+                    "the default counterweight height (default: %(default)s)")
+    ip.add_argument("--target-n", type=float, default=None, metavar="N",
+                    help="pick the counterweight giving amplification N at the reference tilt")
+    ip.add_argument("--tilt-rad", type=float, default=1e-3,
+                    help="reference tilt phi for the non-linear N [rad] (default: %(default)g, "
+                    "as in the paper)")
+    ip.add_argument("--cw-height-m", type=float, default=None,
+                    help="height of the counterweight's centre of mass above the pivot [m] "
+                    "(default: the config's com_length_m)")
+    ip.add_argument("--frame-mass-kg", type=float, default=0.0,
+                    help="mass of the rest of the pendulum [kg] (default: 0)")
+    ip.add_argument("--frame-com-m", type=float, default=0.0,
+                    help="height of the frame's centre of mass above the pivot [m] "
+                    "(default: 0)")
+    ip.add_argument("--mass-kg", type=float, nargs=2, default=None, metavar=("MIN", "MAX"),
+                    help="counterweight masses to sweep [kg] (default: 0.5 to 1.05 times the "
+                    "stability limit; a range across the limit is fine)")
+    ip.add_argument("--step-kg", type=float, default=None,
+                    help="table step [kg] (default: a round step giving 6 to 15 rows)")
+    ip.add_argument("--json", action="store_true",
+                    help="print one JSON object (model, sweep, stability_limit, pick, plot)")
+    ip.add_argument("--plot", default=None, metavar="FILE.png",
+                    help="save N against counterweight mass, limit marked (PNG)")
+    ip.set_defaults(func=_cmd_design_ip)
     _add_control_commands(sub)
     return parser
 

@@ -31,11 +31,12 @@ from leveler.config import ConfigError
 from leveler.control import ControlServer, Peer, resolve_group
 from leveler.drivers.base import DriverError, Status
 from leveler.logrotate import RotatingLog
-from leveler.loop import ENGAGED, FAULT, Loop
+from leveler.loop import ENGAGED, FAULT, IDLE, MODULATING, Loop
+from leveler.modulation import SquareWave
 from leveler.notify import Notifier
 from leveler.persist import set_keys, write_atomic
 from leveler.pid import PID, PIDGains
-from leveler.protocol import ProtocolError, default_socket_path, tune_args
+from leveler.protocol import ProtocolError, default_socket_path, modulate_args, tune_args
 from leveler.settings import ControllerConfig, load_config
 from leveler.stand import Stand, open_stand
 
@@ -89,6 +90,7 @@ class Daemon:
         self._reconnect_wait_s = 0.0  # 0: not in fault (or the fault has just come)
         self._next_reconnect = 0.0
         self._resume = False  # close the loop at the next good reading
+        self._reengage_after_wave = False  # a forced modulation opened the loop
         self.clock = RealtimeClock(self.dt)
         self.server = ControlServer(self.socket_path, self, gid=self.gid,
                                     max_clients=self.cfg.control.max_clients,
@@ -131,6 +133,10 @@ class Daemon:
         if verb == "rotate":
             path = self.log.rotate(f"requested by {who}")  # thread-safe; keeps I/O off the loop
             return {"ok": True, "path": str(path)}
+        if verb == "modulate":
+            amplitude_v, period_s, cycles, force = modulate_args(req)
+            return {"ok": True, **self.call(
+                lambda t: self._modulate(t, who, amplitude_v, period_s, cycles, force))}
         if verb == "tune":
             values, persist = tune_args(req)
             new = self._validated(values)
@@ -166,6 +172,8 @@ class Daemon:
             "state": self.loop.state,
             "fault_reason": self.loop.fault_reason,
             "driver_errors": dict(self.loop.errors),
+            "modulation": (dataclasses.asdict(self.loop.wave) if self.loop.wave is not None
+                           else None),
             "sample": s,
             "tilt_rad": (s.sensor_m / (pend.amplification * pend.sensor_arm_m)
                          if s is not None else None),
@@ -182,11 +190,15 @@ class Daemon:
         if self.loop.state == FAULT:
             raise ProtocolError(f"in fault ({self.loop.fault_reason}); run `leveler reset` "
                                 "first")
+        if self.loop.state == MODULATING:
+            raise ProtocolError("modulating: wait for the wave to end, or `leveler stop` to "
+                                "abort it")
         self.loop.engage(t, f"start by {who}")
         return self.loop.state
 
     def _stop(self, t: float, who: str) -> str:
         self._resume = False  # a person said stop: no automatic resume after a reconnect
+        self._reengage_after_wave = False
         self.loop.disengage(t, f"stop by {who}")
         return self.loop.state
 
@@ -217,6 +229,32 @@ class Daemon:
         self.loop.reset(t, "reconnected")
         # Close the loop again from the next good cycle's reading (bumpless).
         self._resume = self._was_engaged and lc.resume_after_reconnect
+
+    def _modulate(self, t: float, who: str, amplitude_v: float, period_s: float, cycles: int,
+                  force: bool) -> dict[str, Any]:
+        """Start a tilt modulation from idle; from engaged only if forced, and then close the
+        loop again when the wave has ended."""
+        loop = self.loop
+        if loop.state == ENGAGED and not force:
+            raise ProtocolError("engaged: the loop would fight the modulation; `leveler stop` "
+                                "first, or force it (the loop closes again afterwards)")
+        if loop.state not in (IDLE, ENGAGED):
+            raise ProtocolError(f"cannot modulate while {loop.state}")
+        try:  # checked before the loop opens: a refused wave leaves it as it was
+            SquareWave(loop.held_v, amplitude_v, period_s, cycles).check_fits(
+                self.cfg.controller.output_min_v, self.cfg.controller.output_max_v, self.dt)
+        except ValueError as exc:
+            raise ProtocolError(f"modulate: {exc}") from None
+        was_engaged = loop.state == ENGAGED
+        if was_engaged:
+            loop.disengage(t, f"modulate --force by {who}")
+        wave = loop.modulate(t, amplitude_v, period_s, cycles, f"modulate by {who}")
+        self._reengage_after_wave = was_engaged
+        pend, pz = self.cfg.plant.pendulum, self.cfg.plant.piezo
+        return {"wave": dataclasses.asdict(wave), "rate_hz": self.cfg.loop.rate_hz,
+                "model": {"sensor_m_per_rad": pend.amplification * pend.sensor_arm_m,
+                          "tilt_rad_per_v": pz.gain_m_per_v
+                          / self.cfg.plant.platform.support_spacing_m}}
 
     def _reset(self, t: float, who: str) -> str:
         if self.loop.state != FAULT:
@@ -352,12 +390,16 @@ class Daemon:
                 s = loop.cycle(t, clock.wall_ns(t))
                 now = time.monotonic()
                 if loop.state == FAULT:
+                    self._reengage_after_wave = False  # a procedure that faulted stays open
                     self._maybe_reconnect(t, now)
                 else:
                     self._reconnect_wait_s = 0.0
                     if self._resume and s.status == 0:
                         self._resume = False
                         loop.engage(t, "resume after reconnect")
+                    if self._reengage_after_wave and loop.state != MODULATING:
+                        self._reengage_after_wave = False
+                        loop.engage(t, "resume after modulation")
                     self._was_engaged = loop.state == ENGAGED
                 if wd is not None and now >= next_wd:
                     self.notifier.watchdog()  # from this thread: a stalled loop stops it

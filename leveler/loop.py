@@ -14,10 +14,11 @@ from collections.abc import Callable
 from typing import Protocol
 
 from leveler.drivers.base import Actuator, Block, DriverError, Reading, Sensor, Status
+from leveler.modulation import SquareWave
 from leveler.pid import PID
 from leveler.records import Event, Sample, Truth
 
-IDLE, ENGAGED, FAULT = "idle", "engaged", "fault"
+IDLE, ENGAGED, FAULT, MODULATING = "idle", "engaged", "fault", "modulating"
 ERROR_EVENT_INTERVAL_S = 1.0  # at most one driver_error event per second; the counts are exact
 
 
@@ -50,6 +51,7 @@ class Loop:
         self.seq = 0
         self.held_v = actuator.safe_v
         self.last: Sample | None = None
+        self.wave: SquareWave | None = None  # the tilt modulation while `modulating`
         self._wall_ns = 0
         self.fault_after_errors = fault_after_errors
         self.errors = {"sensor": 0, "actuator": 0}  # driver errors outside fault, since start
@@ -74,9 +76,35 @@ class Loop:
         self._transition(ENGAGED, reason, t_s)
 
     def disengage(self, t_s: float, reason: str = "requested") -> None:
-        """Open the loop; the actuator holds its last voltage."""
+        """Open the loop, or abort a modulation (back to its centre voltage)."""
         if self.state == ENGAGED:
             self._transition(IDLE, reason, t_s)
+        elif self.state == MODULATING:
+            self._end_modulation(t_s, f"modulation aborted: {reason}")
+
+    def modulate(self, t_s: float, amplitude_v: float, period_s: float, cycles: int,
+                 reason: str = "requested") -> SquareWave:
+        """From idle, drive a square wave about the held voltage with the loop open; back to
+        idle at that voltage when it ends (or on `disengage`). ValueError if the wave does
+        not fit the controller's output range or the loop rate."""
+        if self.state != IDLE:
+            raise ValueError(f"modulation needs the loop idle, not {self.state}")
+        wave = SquareWave(self.held_v, amplitude_v, period_s, cycles, start_t_s=t_s)
+        c = self.pid.config
+        wave.check_fits(c.output_min_v, c.output_max_v, self.dt_s)
+        self.wave = wave
+        self._transition(MODULATING, reason, t_s)
+        self.emit("procedure", "modulation started", t_s, center_v=wave.center_v,
+                  amplitude_v=amplitude_v, period_s=period_s, cycles=cycles,
+                  start_t_s=t_s, end_t_s=wave.end_t_s)
+        return wave
+
+    def _end_modulation(self, t_s: float, reason: str) -> None:
+        assert self.wave is not None
+        self.held_v = self.wave.center_v
+        self.wave = None
+        self.emit("procedure", reason, t_s)
+        self._transition(IDLE, reason, t_s)
 
     def reset(self, t_s: float, reason: str = "requested") -> None:
         """Leave `fault` for `idle`; the actuator stays at its safe voltage until engaged."""
@@ -97,6 +125,9 @@ class Loop:
         except DriverError as exc:
             reason = f"{reason}; make_safe failed too: {exc}"
         if self.state != FAULT:
+            if self.wave is not None:
+                self.wave = None
+                self.emit("procedure", f"modulation aborted: {reason}", t_s)
             self.fault_reason = reason
             self._transition(FAULT, reason, t_s)
 
@@ -143,6 +174,14 @@ class Loop:
             setpoint, command = out.setpoint_m, out.command_v
         else:
             command = self.held_v
+            if self.state == MODULATING:
+                assert self.wave is not None
+                wave_v = self.wave.command_v(t_s)
+                if wave_v is None:
+                    self._end_modulation(t_s, "modulation done")
+                    command = self.held_v
+                else:
+                    command = wave_v
         applied = command
         if self.state != FAULT:
             try:

@@ -18,7 +18,7 @@ import orjson
 
 VERSION = 1
 MAX_LINE_BYTES = 64 * 1024
-VERBS = ("status", "start", "stop", "tune", "watch", "rotate", "reset")
+VERBS = ("status", "start", "stop", "tune", "watch", "rotate", "reset", "modulate")
 
 #: tune arguments: config key -> lower bound (inclusive) or None
 TUNE_KEYS: dict[str, float | None] = {
@@ -110,6 +110,28 @@ def tune_args(req: dict[str, Any]) -> tuple[dict[str, float], bool]:
     if not values:
         raise ProtocolError(f"tune: nothing to change; keys: {', '.join(TUNE_KEYS)}")
     return values, persist
+
+
+def modulate_args(req: dict[str, Any]) -> tuple[float, float, int, bool]:
+    """amplitude_v, period_s, cycles and force of a modulate request, type-checked."""
+    extra = sorted(set(req) - {"v", "verb", "amplitude_v", "period_s", "cycles", "force"})
+    if extra:
+        raise ProtocolError(f"modulate: unknown key {extra[0]!r}; keys: amplitude_v, "
+                            "period_s, cycles, force")
+    out: list[float] = []
+    for key in ("amplitude_v", "period_s"):
+        value = req.get(key)
+        if isinstance(value, bool) or not isinstance(value, int | float) or not (
+                math.isfinite(value) and value > 0):
+            raise ProtocolError(f"modulate: {key} must be a number > 0, got {value!r}")
+        out.append(float(value))
+    cycles = req.get("cycles", 1)
+    if isinstance(cycles, bool) or not isinstance(cycles, int) or not 1 <= cycles <= 10_000:
+        raise ProtocolError(f"modulate: cycles must be an integer in 1..10000, got {cycles!r}")
+    force = req.get("force", False)
+    if not isinstance(force, bool):
+        raise ProtocolError(f"modulate: force must be true or false, got {force!r}")
+    return out[0], out[1], cycles, force
 
 
 def encode(obj: dict[str, Any]) -> bytes:

@@ -1,0 +1,113 @@
+"""`leveler modulate`: the square wave, its read-back, the simulated procedure, and the
+daemon executing it as a logged procedure (a real process over its real socket)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from leveler.logreader import read_log
+from leveler.modulation import SquareWave, response
+
+
+def test_square_wave_shape_and_end() -> None:
+    w = SquareWave(75.0, 5.0, 10.0, 2, start_t_s=100.0)
+    assert [w.command_v(t) for t in (100.0, 104.9, 105.0, 109.9, 110.0, 115.0)] == [
+        80.0, 80.0, 70.0, 70.0, 80.0, 70.0]
+    assert w.command_v(120.0) is None and w.end_t_s == 120.0
+    for bad in ({"amplitude_v": 0.0}, {"period_s": -1.0}, {"cycles": 0}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            SquareWave(**{"center_v": 75.0, "amplitude_v": 1.0, "period_s": 1.0, "cycles": 1,
+                          **bad})  # type: ignore[arg-type]
+
+
+def test_response_reads_the_step_through_drift_and_noise() -> None:
+    w = SquareWave(0.0, 1.0, 20.0, 4)
+    t = np.arange(0.0, 80.0, 0.05)
+    rng = np.random.default_rng(3)
+    y = (3e-6 * (np.array([w.command_v(x) for x in t]) > 0)  # 3 um step
+         + 2e-8 * t + 5e-9 * rng.standard_normal(len(t)))  # drift 1.6 um over the run
+    r = response(w, t, y)
+    assert r.peak_to_peak == pytest.approx(3e-6, rel=1e-3)
+    assert r.steps == 6 and r.scatter < 5e-9
+    with pytest.raises(ValueError, match="no samples in half period"):
+        response(w, t[t < 50], y[t < 50])
+
+
+def _cli(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "leveler.cli", "modulate", *args],
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def test_simulated_procedure_recovers_the_piezo_geometry(tmp_path: Path) -> None:
+    out = _cli("--sim", "--amplitude-v", "5", "--period", "60s", "--cycles", "3",
+               "--settle", "10s", "--json", "--plot", str(tmp_path / "m.png"))
+    assert out.returncode == 0, out.stderr
+    r = json.loads(out.stdout)
+    # 10 V p-p x 0.1 um/V over 0.5 m = 2 urad; x 8.99 x 5 cm = 0.899 um at the sensor.
+    assert r["model_tilt_peak_to_peak_rad"] == pytest.approx(2e-6, rel=1e-6)
+    assert r["true_tilt_peak_to_peak_rad"] == pytest.approx(2e-6, rel=0.01)
+    assert r["ip_peak_to_peak_m"] == pytest.approx(0.899e-6, rel=0.02)
+    assert r["measured_over_model"] == pytest.approx(1.0, abs=0.02)
+    assert (tmp_path / "m.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    bad = _cli("--sim", "--amplitude-v", "100", "--period", "60s")
+    assert bad.returncode == 2 and "output" not in bad.stdout  # refused, no traceback
+    assert "Traceback" not in bad.stderr
+
+
+def test_daemon_refuses_while_engaged_runs_when_forced_and_closes_the_loop_again(
+        start_daemon: Callable[..., object]) -> None:
+    # A well damped pendulum (Q ~ 0.7) settles within each 3 s half period.
+    d = start_daemon(rate_hz=20.0, replace={"damping_nms_per_rad = 1.2e-4":
+                                            "damping_nms_per_rad = 6.0e-3"})
+    d.wait_status_lines(2)  # type: ignore[attr-defined]
+    sock = str(d.socket)  # type: ignore[attr-defined]
+    refused = _cli("--amplitude-v", "2", "--period", "2s", "--socket", sock)
+    assert refused.returncode == 2 and "engaged" in refused.stderr
+    too_big = _cli("--amplitude-v", "80", "--period", "2s", "--force", "--socket", sock)
+    assert too_big.returncode == 2 and "output range" in too_big.stderr
+    out = _cli("--amplitude-v", "2", "--period", "6s", "--cycles", "2", "--force", "--json",
+               "--socket", sock)
+    assert out.returncode == 0, out.stderr
+    r = json.loads(out.stdout)
+    assert r["where"] == "daemon" and r["piezo_peak_to_peak_v"] == pytest.approx(4.0, abs=0.01)
+    # 4 V p-p: 0.8 urad, 0.36 um at the sensor.
+    assert r["measured_over_model"] == pytest.approx(1.0, abs=0.05)
+    deadline = time.monotonic() + 5
+    while json.loads(d.cli("status", "--json").stdout)["state"] != "engaged":  # type: ignore[attr-defined]
+        assert time.monotonic() < deadline, "the loop did not close again"
+        time.sleep(0.1)
+    # A wave started from idle is aborted by `leveler stop`, back at its centre voltage.
+    assert d.cli("stop").returncode == 0  # type: ignore[attr-defined]
+    held = json.loads(d.cli("status", "--json").stdout)["sample"]["applied_v"]  # type: ignore[attr-defined]
+    started = subprocess.Popen([sys.executable, "-m", "leveler.cli", "modulate",
+                                "--amplitude-v", "1", "--period", "10s", "--socket", sock],
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 5
+    while (st := json.loads(d.cli("status", "--json").stdout))["state"] != "modulating":  # type: ignore[attr-defined]
+        assert time.monotonic() < deadline, "never modulating"
+        time.sleep(0.05)
+    assert st["modulation"]["center_v"] == pytest.approx(held, abs=1e-9)
+    assert d.cli("start").returncode == 2  # type: ignore[attr-defined]  # not while modulating
+    assert d.cli("stop").returncode == 0  # type: ignore[attr-defined]
+    _, err = started.communicate(timeout=10)
+    assert started.returncode == 2 and "ended early: the daemon is idle" in err
+    time.sleep(0.3)
+    st = json.loads(d.cli("status", "--json").stdout)  # type: ignore[attr-defined]
+    assert st["state"] == "idle" and st["sample"]["applied_v"] == pytest.approx(held, abs=1e-6)
+    d.stop()  # type: ignore[attr-defined]
+    log = read_log(next(d.logs.glob("*.mcap")))  # type: ignore[attr-defined]
+    procs = [e["reason"] for e in log.events if e["kind"] == "procedure"]
+    assert procs[:3] == ["modulation started", "modulation done", "modulation started"]
+    assert procs[3].startswith("modulation aborted: stop by uid") and len(procs) == 4
+    states = [e["detail"]["new"] for e in log.events if e["kind"] == "state"]
+    assert states[:5] == ["engaged", "idle", "modulating", "idle", "engaged"]
+    s = log.samples
+    assert (s["state"] == "modulating").sum() >= 2 * 6 * 20  # every sample logged
