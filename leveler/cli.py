@@ -70,6 +70,12 @@ def _cmd_modulate(args: argparse.Namespace) -> int:
     return run_modulate_command(args)
 
 
+def _cmd_design_ip(args: argparse.Namespace) -> int:
+    from leveler.designcmd import run_design_ip_command
+
+    return run_design_ip_command(args)
+
+
 def _cmd_emulate(args: argparse.Namespace) -> int:
     from leveler.emulatecmd import run_emulate_command
 
@@ -355,11 +361,6 @@ def build_parser() -> argparse.ArgumentParser:
                     "serial KINDs: piezo.X or sensor.X with X one of no_reply, garbage, "
                     "partial_line, drop, error. E.g. --fault 30:garbage --fault 60:exception:2")
     em.set_defaults(func=_cmd_emulate)
-
-    def _cmd_design_ip(args: argparse.Namespace) -> int:
-        from leveler.designcmd import run_design_ip_command
-
-        return run_design_ip_command(args)
 
     design = sub.add_parser(
         "design", help="the paper's design procedures (ip: inverted-pendulum counterweight)",
