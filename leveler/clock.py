@@ -7,6 +7,7 @@ The loop never reads a clock itself; it asks one of these for the next tick, so 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -35,13 +36,19 @@ class RealtimeClock:
     periods of the last `window` cycles give the statistics the status line prints; they
     live in preallocated rings so that `stats()` (called from the control thread while the
     loop runs) costs well under a millisecond of interpreter time.
+
+    Log times are the wall time at start plus monotonic time since: a step of the system
+    clock (NTP, a person) never reorders or duplicates log times; `wall_step_ns` says how far
+    the system clock has moved away from that timeline, for the daemon to report.
     """
 
-    def __init__(self, period_s: float, window: int = 10_000) -> None:
+    def __init__(self, period_s: float, window: int = 10_000,
+                 wall_now_ns: Callable[[], int] = time.time_ns) -> None:
         self.period_s = period_s
         self._period_ns = round(period_s * 1e9)
+        self._wall_now_ns = wall_now_ns
         self._start_ns = time.monotonic_ns()
-        self._wall0_ns = time.time_ns()
+        self._wall0_ns = wall_now_ns()
         self._next_ns = self._start_ns
         self._last_ns: int | None = None
         self.overruns = 0
@@ -71,7 +78,11 @@ class RealtimeClock:
         return (deadline - self._start_ns) / 1e9
 
     def wall_ns(self, t_s: float) -> int:
-        return time.time_ns()
+        return self._wall0_ns + round(t_s * 1e9)
+
+    def wall_step_ns(self) -> int:
+        """System wall time minus this clock's timeline, now (0 until the clock steps)."""
+        return self._wall_now_ns() - (self._wall0_ns + time.monotonic_ns() - self._start_ns)
 
     def stats(self, max_age_s: float = 1.0) -> dict[str, float]:
         """Period p50/p99/max and lateness p99 in seconds over the recent window.

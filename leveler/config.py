@@ -62,6 +62,11 @@ def _convert(tp: Any, value: Any, key: str, meta: typing.Mapping[str, Any]) -> A
         if value not in typing.get_args(tp):
             raise ConfigError(f"{key}: expected {_type_name(tp)}, got {value!r}")
         return value
+    if origin is tuple:  # tuple[X, ...]: a TOML array, e.g. of tables ([[sim.faults]])
+        if not isinstance(value, list):
+            raise ConfigError(f"{key}: expected an array, got {value!r}")
+        (item,) = typing.get_args(tp)[:1]
+        return tuple(_convert(item, v, f"{key}[{i}]", meta) for i, v in enumerate(value))
     if dataclasses.is_dataclass(tp):
         if not isinstance(value, dict):
             raise ConfigError(f"{key}: expected a table [{key}], got {value!r}")

@@ -41,6 +41,7 @@ from leveler.settings import ControllerConfig, load_config
 from leveler.stand import Stand, open_stand
 
 _log = logging.getLogger("leveler")
+WALL_STEP_REPORT_S = 1.0  # smaller corrections (NTP slewing, jitter) are not news
 CALL_TIMEOUT_S = 2.0
 
 
@@ -85,13 +86,20 @@ class Daemon:
         self.dt = 1.0 / self.cfg.loop.rate_hz
         pid = PID(self.cfg.controller.pid_config(), initial_output_v=self.stand.actuator.safe_v)
         self.loop = Loop(self.stand.sensor, self.stand.actuator, pid, self.dt, [self.log],
-                         self.stand.truth, fault_after_errors=self.cfg.loop.fault_after_errors)
+                         self.stand.truth, policy=self.cfg.loop)
         self._was_engaged = False  # the state a fault interrupted, for resuming after it
         self._reconnect_wait_s = 0.0  # 0: not in fault (or the fault has just come)
         self._next_reconnect = 0.0
-        self._resume = False  # close the loop at the next good reading
+        self._resume = False  # close the loop after resume_after_good_samples good readings
+        self._good_run = 0
         self._reengage_after_wave = False  # a forced modulation opened the loop
-        self.clock = RealtimeClock(self.dt)
+        # A [[sim.faults]] clock_step offsets the wall time the clock sees (simulated backend).
+        self._clock_steps = [f for f in self.cfg.sim.faults if f.kind == "clock_step"
+                             ] if self.cfg.sensor.backend == "sim" else []
+        self._injected_step_ns = 0
+        self.clock = RealtimeClock(self.dt,
+                                   wall_now_ns=lambda: time.time_ns() + self._injected_step_ns)
+        self._reported_step_ns = 0
         self.server = ControlServer(self.socket_path, self, gid=self.gid,
                                     max_clients=self.cfg.control.max_clients,
                                     idle_timeout_s=self.cfg.control.idle_timeout_s)
@@ -229,6 +237,7 @@ class Daemon:
         self.loop.reset(t, "reconnected")
         # Close the loop again from the next good cycle's reading (bumpless).
         self._resume = self._was_engaged and lc.resume_after_reconnect
+        self._good_run = 0
 
     def _modulate(self, t: float, who: str, amplitude_v: float, period_s: float, cycles: int,
                   force: bool) -> dict[str, Any]:
@@ -255,6 +264,18 @@ class Daemon:
                 "model": {"sensor_m_per_rad": pend.amplification * pend.sensor_arm_m,
                           "tilt_rad_per_v": pz.gain_m_per_v
                           / self.cfg.plant.platform.support_spacing_m}}
+
+    def _check_wall_clock(self, t: float) -> None:
+        """Report a step of the system clock (more than WALL_STEP_REPORT_S since the last
+        report); log times stay on the monotonic timeline either way."""
+        self._injected_step_ns = round(sum(f.size for f in self._clock_steps if t >= f.at_s)
+                                       * 1e9)
+        step = self.clock.wall_step_ns()
+        if abs(step - self._reported_step_ns) > WALL_STEP_REPORT_S * 1e9:
+            self.loop.emit("clock", f"wall clock stepped by "
+                           f"{(step - self._reported_step_ns) / 1e9:+.3f} s; log times keep the "
+                           "monotonic timeline", t, offset_s=step / 1e9)
+            self._reported_step_ns = step
 
     def _reset(self, t: float, who: str) -> str:
         if self.loop.state != FAULT:
@@ -394,9 +415,12 @@ class Daemon:
                     self._maybe_reconnect(t, now)
                 else:
                     self._reconnect_wait_s = 0.0
-                    if self._resume and s.status == 0:
-                        self._resume = False
-                        loop.engage(t, "resume after reconnect")
+                    if self._resume:  # after a reconnect: N good readings, then close
+                        self._good_run = self._good_run + 1 if s.status == 0 else 0
+                        if self._good_run >= cfg.loop.resume_after_good_samples:
+                            self._resume = False
+                            loop.engage(t, f"resume after reconnect ({self._good_run} good "
+                                        "readings)")
                     if self._reengage_after_wave and loop.state != MODULATING:
                         self._reengage_after_wave = False
                         loop.engage(t, "resume after modulation")
@@ -411,6 +435,7 @@ class Daemon:
                         self.notifier.ready(self.status_line())
                 if now >= next_status:
                     next_status += self.cfg.loop.status_interval_s
+                    self._check_wall_clock(t)
                     line = self.status_line()
                     print(line, flush=True)
                     self.notifier.status(line)

@@ -1,10 +1,12 @@
 """One control cycle: read -> update -> write -> log, with time passed in.
 
-The loop owns the lifecycle state (idle, engaged, fault). A driver error never escapes a
-cycle. One bad reply (a garbled line, a Modbus exception, a timeout) is counted and logged and
-the actuator holds its voltage for that cycle; `fault_after_errors` errors in a row mean the
-device is gone: the actuator goes to its safe state, the loop enters `fault` and logs why.
-The daemon, `leveler sim` and the tests all drive this same class.
+The loop owns the lifecycle state (idle, engaged, fault, modulating). A driver error never
+escapes a cycle. One bad reply (a garbled line, a Modbus exception, a timeout) is counted and
+logged and the actuator holds its voltage for that cycle; `fault_after_errors` errors in a row
+mean the device is gone: the actuator goes to its safe state, the loop enters `fault` and logs
+why. A reading that arrives but cannot be trusted (NaN, railed, stuck, a spike: `_screen`)
+holds the voltage too, and `fault_after_bad_readings` of them in a row fault. The daemon,
+`leveler sim` and the tests all drive this same class.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from leveler.drivers.base import Actuator, Block, DriverError, Reading, Sensor, 
 from leveler.modulation import SquareWave
 from leveler.pid import PID
 from leveler.records import Event, Sample, Truth
+from leveler.settings import LoopConfig
 
 IDLE, ENGAGED, FAULT, MODULATING = "idle", "engaged", "fault", "modulating"
 ERROR_EVENT_INTERVAL_S = 1.0  # at most one driver_error event per second; the counts are exact
@@ -37,9 +40,7 @@ class Loop:
 
     def __init__(self, sensor: Sensor, actuator: Actuator, pid: PID, dt_s: float,
                  sinks: list[Sink], truth: Callable[[int, float], Truth] | None = None,
-                 *, fault_after_errors: int = 1) -> None:
-        if fault_after_errors < 1:
-            raise ValueError(f"fault_after_errors must be >= 1, got {fault_after_errors}")
+                 *, policy: LoopConfig | None = None) -> None:
         self.sensor = sensor
         self.actuator = actuator
         self.pid = pid
@@ -53,11 +54,19 @@ class Loop:
         self.last: Sample | None = None
         self.wave: SquareWave | None = None  # the tilt modulation while `modulating`
         self._wall_ns = 0
-        self.fault_after_errors = fault_after_errors
+        self.policy = policy or LoopConfig()
+        self.fault_after_errors = self.policy.fault_after_errors
         self.errors = {"sensor": 0, "actuator": 0}  # driver errors outside fault, since start
         self._in_a_row = 0
         self._unreported = 0
         self._next_error_event_s = -math.inf
+        self.bad_readings = 0  # untrustworthy readings outside fault, since start
+        self._bad_in_a_row = 0
+        self._bad_why = ""
+        self._same_in_a_row = 0  # readings identical to the one before (a stuck sensor)
+        self._spikes_in_a_row = 0
+        self._last_value_m = math.nan
+        self._last_good_m = math.nan
 
     def emit(self, kind: str, reason: str, t_s: float, **detail: object) -> None:
         """Log a discrete event to every sink."""
@@ -112,6 +121,7 @@ class Loop:
             self.held_v = self.actuator.safe_v
             self.fault_reason = ""
             self._in_a_row = 0
+            self._bad_in_a_row = 0
             self._transition(IDLE, reason, t_s)
 
     def _transition(self, new: str, reason: str, t_s: float) -> None:
@@ -154,6 +164,48 @@ class Loop:
         self._unreported = 0
         self._next_error_event_s = t_s + ERROR_EVENT_INTERVAL_S
 
+    def _screen(self, r: Reading) -> Reading:
+        """Mark a reading the controller must not trust (stuck, spike), and count runs of
+        untrustworthy readings: the first is logged, `fault_after_bad_readings` in a row
+        fault, and the end of a run is logged with its length."""
+        p = self.policy
+        why = {Status.TIMEOUT: "timeout", Status.INVALID: "invalid (NaN or unparsable)",
+               Status.RAILED: "railed (at the end of the sensor's range)"}.get(r.status, "")
+        if r.status == Status.OK:
+            same = r.value_m == self._last_value_m
+            self._same_in_a_row = self._same_in_a_row + 1 if same else 0
+            if p.stuck_after_samples and self._same_in_a_row + 1 >= p.stuck_after_samples:
+                why = f"stuck ({self._same_in_a_row + 1} identical readings)"
+            elif (p.max_step_m and abs(r.value_m - self._last_good_m) > p.max_step_m
+                  and self._spikes_in_a_row < p.spike_reject_max):
+                self._spikes_in_a_row += 1
+                why = (f"spike ({(r.value_m - self._last_good_m) * 1e9:+.1f} nm from the last "
+                       f"good reading, over max_step_m)")
+            else:
+                self._spikes_in_a_row = 0  # a level that persists is accepted
+        self._last_value_m = r.value_m
+        if not why:
+            self._last_good_m = r.value_m
+            if self._bad_in_a_row and self.state != FAULT:
+                self.emit("bad_reading", f"readings good again after {self._bad_in_a_row} "
+                          "bad", r.t_s, in_a_row=self._bad_in_a_row)
+            self._bad_in_a_row = 0
+            return r
+        if self.state == FAULT:
+            return Reading(r.t_s, r.raw_counts, r.value_m, Status.INVALID)
+        self.bad_readings += 1
+        self._bad_in_a_row += 1
+        if self._bad_in_a_row == 1:
+            self._bad_why = why
+            self.emit("bad_reading", f"sensor reading {why}; voltage held", r.t_s,
+                      value_m=r.value_m, status=int(r.status))
+        if self._bad_in_a_row >= p.fault_after_bad_readings:
+            self._bad_in_a_row = 0
+            self._fault(r.t_s, f"{p.fault_after_bad_readings} bad sensor readings in a row "
+                        f"(first: {self._bad_why}; last: {why})")
+        status = r.status if r.status != Status.OK else Status.INVALID
+        return Reading(r.t_s, r.raw_counts, r.value_m, status)
+
     def cycle(self, t_s: float, wall_ns: int) -> Sample:
         """Run one cycle at loop time t_s (s) and wall time wall_ns; never raises DriverError."""
         self._wall_ns = wall_ns
@@ -164,6 +216,8 @@ class Loop:
         except DriverError as exc:
             reading = Reading(t_s, 0, math.nan, Status.FAULT)
             self._driver_error(t_s, "sensor", f"sensor read failed: {exc}")
+        else:
+            reading = self._screen(reading)
         pid = self.pid
         p = i = d = 0.0
         saturated = False

@@ -91,7 +91,7 @@ def _simulated(args: argparse.Namespace) -> dict[str, Any]:
     rec = Recorder()
     dt = 1.0 / cfg.loop.rate_hz
     loop = Loop(stand.sensor, stand.actuator, PID(cfg.controller.pid_config()), dt, [rec],
-                stand.truth, fault_after_errors=cfg.loop.fault_after_errors)
+                stand.truth, policy=cfg.loop)
     clock = VirtualClock(dt, start_wall_ns=0)
     t = clock.tick()
     loop.cycle(t, 0)

@@ -11,6 +11,7 @@ from leveler.config import ConfigError, build, load_toml, non_negative, positive
 from leveler.drivers.modbus_config import ModbusActuatorConfig, ModbusSensorConfig
 from leveler.drivers.nidaq_config import NidaqActuatorConfig, NidaqSensorConfig
 from leveler.drivers.serial_config import SerialPiezoConfig, SerialSensorConfig
+from leveler.drivers.simulated import FaultSpec
 from leveler.pid import PIDConfig, PIDGains
 from leveler.sim.params import PlantParams
 
@@ -22,6 +23,11 @@ class LoopConfig:
     engage_on_start: bool = True
     ready_samples: int = field(default=10, metadata={"ge": 1})
     fault_after_errors: int = field(default=3, metadata={"ge": 1})
+    fault_after_bad_readings: int = field(default=50, metadata={"ge": 1})
+    stuck_after_samples: int = field(default=0, metadata={"ge": 0})
+    max_step_m: float = non_negative(0.0)
+    spike_reject_max: int = field(default=3, metadata={"ge": 1})
+    resume_after_good_samples: int = field(default=10, metadata={"ge": 1})
     reconnect_min_s: float = positive(2.0)
     reconnect_max_s: float = positive(60.0)
     resume_after_reconnect: bool = True
@@ -120,6 +126,7 @@ class SimConfig:
     hang_at_s: float = non_negative(math.inf, allow_inf=True)
     hang_for_s: float = non_negative(0.0)
     fail_at_s: float = non_negative(math.inf, allow_inf=True)
+    faults: tuple[FaultSpec, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)

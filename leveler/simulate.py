@@ -68,7 +68,7 @@ def run_virtual(cfg: Config, duration_s: float, seed: int, *, engaged: bool,
     rec = Recorder()
     sinks: list[Sink] = [rec] if writer is None else [rec, writer]
     loop = Loop(stand.sensor, stand.actuator, PID(cfg.controller.pid_config()), dt, sinks,
-                stand.truth, fault_after_errors=cfg.loop.fault_after_errors)
+                stand.truth, policy=cfg.loop)
     clock = VirtualClock(dt, start_wall_ns)
     n = round(duration_s / dt)
     report_every = max(n // 200, 1)

@@ -70,5 +70,6 @@ def open_stand(cfg: Config, seed: int | None = None) -> Stand:
     dt_s = 1.0 / cfg.loop.rate_hz
     plant = Plant(cfg.plant, dt_s, cfg.sim.seed if seed is None else seed)
     sim = SimulatedStand(plant, cfg.actuator.safe_v, hang_at_s=cfg.sim.hang_at_s,
-                         hang_for_s=cfg.sim.hang_for_s, fail_at_s=cfg.sim.fail_at_s)
+                         hang_for_s=cfg.sim.hang_for_s, fail_at_s=cfg.sim.fail_at_s,
+                         faults=cfg.sim.faults)
     return Stand(sensor=sim, actuator=sim, truth=sim.truth)

@@ -151,7 +151,6 @@ class GlitchyActuator:
 
 def test_isolated_driver_errors_hold_the_voltage_are_counted_and_logged_sparingly() -> None:
     loop, mem, clock = make_loop()
-    loop.fault_after_errors = 3
     bad_reads = {20, 21, 40, 41, 42 + 1000}  # two pairs in a row, then one much later
     bad_reads |= set(range(60, 80, 2))  # every other read for 2 s at 10 Hz
     loop.sensor = GlitchySensor(loop.sensor, bad_reads)
@@ -179,7 +178,6 @@ def test_isolated_driver_errors_hold_the_voltage_are_counted_and_logged_sparingl
 
 def test_errors_in_a_row_fault_and_name_the_count() -> None:
     loop, mem, clock = make_loop()
-    loop.fault_after_errors = 3
     loop.sensor = GlitchySensor(loop.sensor, {10, 11, 12})
     run(loop, clock, 1)
     loop.engage(0.0)

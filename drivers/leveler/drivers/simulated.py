@@ -8,20 +8,43 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Literal
 
 from leveler.drivers.base import Block, DriverError, Reading, Status
 from leveler.records import Truth
 from leveler.sim.plant import Plant
+
+FaultKind = Literal["timeout", "nan", "stuck", "railed", "spike", "write_fail", "disconnect",
+                    "clock_step"]
+
+
+@dataclass(frozen=True, slots=True)
+class FaultSpec:
+    """One fault of the simulated stand (`[[sim.faults]]`), from at_s for duration_s of loop
+    time (0: one cycle). size: a spike's height [m], a wall-clock step [s] (the daemon
+    applies those); unused by the other kinds."""
+
+    kind: FaultKind
+    at_s: float = field(default=0.0, metadata={"ge": 0.0})
+    duration_s: float = field(default=0.0, metadata={"ge": 0.0})
+    size: float = 0.0
+
+    def active(self, t_s: float, dt_s: float) -> bool:
+        return self.at_s <= t_s < self.at_s + max(self.duration_s, dt_s)
 
 
 class SimulatedStand:
     """Sensor + actuator backed by `leveler.sim.plant.Plant`."""
 
     def __init__(self, plant: Plant, safe_v: float, *, hang_at_s: float = math.inf,
-                 hang_for_s: float = 0.0, fail_at_s: float = math.inf) -> None:
+                 hang_for_s: float = 0.0, fail_at_s: float = math.inf,
+                 faults: Sequence[FaultSpec] = ()) -> None:
         """Fault injection: a read stalls for hang_for_s at hang_at_s (a hung device, for
         the watchdog); reads fail from fail_at_s until the next connect() (a pulled cable,
-        put back when the daemon reconnects, for fault handling)."""
+        put back when the daemon reconnects, for fault handling); `faults` is a schedule of
+        the kinds in FaultSpec (see docs/reliability.md for the loop's reaction to each)."""
         pz = plant.params.piezo
         if not pz.min_v <= safe_v <= pz.max_v:
             raise DriverError(
@@ -33,6 +56,12 @@ class SimulatedStand:
         self._hang_for_s = hang_for_s
         self._fail_at_s = fail_at_s
         self._unplugged = False
+        self._faults = [f for f in faults if f.kind != "clock_step"]
+        self._last: Reading | None = None
+
+    def _fault(self, kind: str, t_s: float) -> FaultSpec | None:
+        return next((f for f in self._faults
+                     if f.kind == kind and f.active(t_s, self.plant.dt_s)), None)
 
     @property
     def safe_v(self) -> float:
@@ -56,19 +85,47 @@ class SimulatedStand:
             self._fail_at_s = math.inf
         if self._unplugged:
             raise DriverError("injected sensor fault: no reply since [sim] fail_at_s")
+        if self._fault("disconnect", t_s):
+            raise DriverError("injected disconnect: the sensor does not answer")
+        if self._fault("timeout", t_s):
+            raise DriverError("injected timeout: no reply from the sensor in time")
         plant = self.plant
         target = round(t_s / plant.dt_s)
         while plant.n < target:
             plant.step()
         if plant.samples_per_cycle > 1:
             counts_n, values_m, railed = plant.measure_block()
-            return Block(t_s, counts_n, values_m, Status.RAILED if railed else Status.OK)
+            block = Block(t_s, counts_n, values_m, Status.RAILED if railed else Status.OK)
+            mean = block.mean()
+            spoiled = self._spoiled(mean)
+            return block if spoiled is mean else spoiled
         counts, value_m, railed = plant.measure()
-        return Reading(t_s, counts, value_m, Status.RAILED if railed else Status.OK)
+        reading = Reading(t_s, counts, value_m, Status.RAILED if railed else Status.OK)
+        return self._spoiled(reading)
+
+    def _spoiled(self, r: Reading) -> Reading:
+        """The reading as a scheduled sensor fault would corrupt it (`r` itself if none)."""
+        t_s = r.t_s
+        if self._fault("nan", t_s):
+            r = Reading(t_s, r.raw_counts, math.nan, Status.INVALID)
+        elif self._fault("railed", t_s):
+            top = 2**self.plant.params.sensor.adc_bits - 1
+            se = self.plant.params.sensor
+            r = Reading(t_s, top, (se.adc_max_v - se.offset_v) / se.gain_v_per_m, Status.RAILED)
+        elif self._fault("stuck", t_s) and self._last is not None:
+            r = Reading(t_s, self._last.raw_counts, self._last.value_m, self._last.status)
+        elif spike := self._fault("spike", t_s):
+            r = Reading(t_s, r.raw_counts, r.value_m + spike.size, r.status)
+        self._last = r
+        return r
 
     def write(self, command_v: float, t_s: float) -> float:
         if not self._connected:
             raise DriverError("simulated actuator written before connect()")
+        if self._fault("disconnect", t_s):
+            raise DriverError("injected disconnect: the piezo amplifier does not answer")
+        if self._fault("write_fail", t_s):
+            raise DriverError("injected write failure: the piezo amplifier refused the command")
         return self.plant.command(command_v)
 
     def make_safe(self) -> None:
