@@ -93,3 +93,4 @@ def test_dropped_link_faults_sets_the_piezo_safe_on_the_wire_and_resumes(
         d.stop()  # type: ignore[attr-defined]
         received = list(emu.received_v)
     _check_log(tmp_path / "logs", safe_v, received, n_before)
+    assert round(received[-1], 2) == safe_v  # SIGTERM: the last word on the wire is safe_v
