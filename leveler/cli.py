@@ -76,6 +76,24 @@ def _cmd_design_ip(args: argparse.Namespace) -> int:
     return run_design_ip_command(args)
 
 
+def _cmd_analyze_stiffness(args: argparse.Namespace) -> int:
+    from leveler.stiffnesscmd import run_stiffness_command
+
+    return run_stiffness_command(args)
+
+
+def _cmd_analyze_two_stage(args: argparse.Namespace) -> int:
+    from leveler.twostagecmd import run_two_stage_command
+
+    return run_two_stage_command(args)
+
+
+def _cmd_calibrate_com(args: argparse.Namespace) -> int:
+    from leveler.comcmd import run_com_command
+
+    return run_com_command(args)
+
+
 def _cmd_emulate(args: argparse.Namespace) -> int:
     from leveler.emulatecmd import run_emulate_command
 
@@ -407,6 +425,108 @@ def build_parser() -> argparse.ArgumentParser:
     ip.add_argument("--plot", default=None, metavar="FILE.png",
                     help="save N against counterweight mass, limit marked (PNG)")
     ip.set_defaults(func=_cmd_design_ip)
+    an = sub.add_parser(
+        "analyze", help="the paper's torsion-pendulum analyses on the simulator (stiffness, "
+        "two-stage)", description="Simulated torsion-pendulum (thrust stand) analyses from "
+        "the paper, each a subcommand. The pendulum obeys J theta'' + lambda theta' + K0 theta "
+        "= F L + M g sin(pitch) l_cm,y + M g sin(roll) l_cm,x (leveler.sim.torsion).")
+    asub = an.add_subparsers(dest="analyze_command", required=True, metavar="ANALYSIS")
+    stf = asub.add_parser(
+        "stiffness", help="thrust stiffness and compliance against base tilt; regimes; tilt "
+        "budget (paper Figs. 3-6)",
+        description="For each pivot stiffness K0 and thrust F, and each pitch tilt of a "
+        "symmetric sweep, a square-wave thrust (0/F, 5 x 400 s at 5 Hz, 1 nm/rtHz sensor noise) "
+        "drives the simulated pendulum, and a second-order thrust -> displacement transfer "
+        "function is identified by least squares. Its 0 Hz value, with the sensor zeroed at "
+        "the level rest position (the paper's definition), gives the compliance S = theta / "
+        "(F L) and the stiffness K = 1 / S. The gravity torque does not change the pendulum's "
+        "dynamics, it shifts its rest point; attributing that shift to the thrust makes "
+        "S = (1 + r) / K0 with r = M g sin(tilt) l_cm / (F L): compliance linear in tilt "
+        "(Fig. 6), stiffness close to a two-term exponential (Fig. 5). 'K incr.' is the "
+        "stiffness fitted with a free offset: K0 at every tilt. Regimes: r > 0 softening, "
+        "-1 < r < 0 stiffening, r < -1 negative stiffness (unstable as a balance). Tilt budget: "
+        "the largest |tilt| with gravity torque <= 1/4 of F L, from the measured compliance "
+        "slope. Fits and the regime table use the first K0; takes some seconds per K0 and F.",
+        epilog="Example: leveler analyze stiffness --plot-dir out/ (transfer_1uN.png and "
+        "transfer_0.1uN.png like Figs. 3, 4; stiffness.png, compliance.png, regimes.png). "
+        "Units are SI; the tables show urad and uN.")
+    stf.add_argument("--stiffness-nm-per-rad", type=float, nargs="+", default=[0.2, 0.02],
+                     metavar="K0", help="pivot stiffnesses K0 [N m/rad] (default: 0.2 0.02, "
+                     "the paper's); the first gets the fits")
+    stf.add_argument("--thrust-n", type=float, nargs="+", default=[1e-6, 1e-7], metavar="F",
+                     help="square-wave thrust amplitudes [N] (default: 1e-6 1e-7, the paper's); "
+                     "the first gets the Fig. 5/6 fits")
+    stf.add_argument("--max-tilt-rad", type=float, default=20e-6,
+                     help="sweep pitch from -this to +this [rad] (default: %(default)g)")
+    stf.add_argument("--tilt-step-rad", type=float, default=2.5e-6,
+                     help="sweep step [rad] (default: %(default)g)")
+    stf.add_argument("--seed", type=int, default=0, help="sensor-noise seed (default: 0)")
+    stf.add_argument("--json", action="store_true",
+                     help="print one JSON object (model, identification, sweeps with points, "
+                     "fits, regimes_seen, tilt_budget_rad)")
+    stf.add_argument("--plot-dir", default=None, metavar="DIR",
+                     help="write the figures (PNG) into DIR")
+    stf.set_defaults(func=_cmd_analyze_stiffness)
+    two = asub.add_parser(
+        "two-stage", help="two-stage torsion pendulum: thrust recovered under base tilt "
+        "(paper Fig. 17)",
+        description="TP2 (the thrust balance, displacement mode) hangs on TP1, which a PID "
+        "holds at null. Under base tilt TP2 reads F L + tau_2 and TP1's null-control torque "
+        "balances F L + tau_A, with tau_2 = kappa tau_A, kappa = M2 L_cm2 / ((M1 + M2) L_cm1). "
+        "A calibration run (thruster off, same tilt) measures kappa; the two-stage estimate "
+        "(y2 - kappa b) / ((1 - kappa) L) removes the tilt, the single-stage estimate y2 / L "
+        "(TP2 alone) does not. Prints both estimates' correlation with the true square-wave "
+        "thrust and their rms error.",
+        epilog="Example: leveler analyze two-stage --plot fig17.png. Units are SI.")
+    two.add_argument("--tilt-amplitude-rad", type=float, default=3e-6,
+                     help="base pitch amplitude [rad] (default: %(default)g, the paper's)")
+    two.add_argument("--tilt-frequency-hz", type=float, default=0.01,
+                     help="base pitch frequency [Hz] (default: %(default)g, the paper's)")
+    two.add_argument("--thrust-n", type=float, default=1e-7,
+                     help="square-wave thrust 0/F [N] (default: %(default)g)")
+    two.add_argument("--thrust-period-s", type=float, default=200.0,
+                     help="square-wave period [s] (default: %(default)g)")
+    two.add_argument("--duration-s", type=float, default=1000.0,
+                     help="length of each run [s] (default: %(default)g)")
+    two.add_argument("--fs-hz", type=float, default=10.0,
+                     help="sample and null-loop rate [Hz] (default: %(default)g)")
+    two.add_argument("--seed", type=int, default=0, help="sensor-noise seed (default: 0)")
+    two.add_argument("--json", action="store_true", help="print one JSON object")
+    two.add_argument("--plot", default=None, metavar="FILE.png",
+                     help="save tilt, null-control torque and thrust estimates against time")
+    two.set_defaults(func=_cmd_analyze_two_stage)
+    com = sub.add_parser(
+        "calibrate-com", help="centre-of-mass offset from tilt and force modulated at two "
+        "frequencies (paper Fig. 11)",
+        description="On the simulated pendulum, modulate the base pitch at f1 and apply a "
+        "calibration force at f2 together; the displacement ASD has a line at each. Their "
+        "amplitude ratio, scaled by the known force, arm and mass (and the pendulum's response "
+        "ratio |H(f2)/H(f1)|), gives the centre-of-mass offset l_cm = (A1/A2) F L / (M g "
+        "sin(tilt)) |H(f2)/H(f1)|, and the counterweight position l_cm2 = l_cm (m1 + m2) / m2. "
+        "Runs once per counterweight position and prints true against recovered.",
+        epilog="Example: leveler calibrate-com --plot fig11.png. Units are SI; the table "
+        "shows mm, um and um/rtHz.")
+    com.add_argument("--counterweight-offsets-m", type=float, nargs="+",
+                     default=[1e-3, 2e-3, 3e-3, 4e-3, 5e-3], metavar="L",
+                     help="counterweight distances from the axis [m] (default: 1..5 mm, the "
+                     "paper's)")
+    com.add_argument("--tilt-amplitude-rad", type=float, default=25e-6,
+                     help="pitch modulation amplitude [rad] (default: %(default)g)")
+    com.add_argument("--tilt-frequency-hz", type=float, default=0.1,
+                     help="pitch modulation frequency f1 [Hz] (default: %(default)g)")
+    com.add_argument("--force-amplitude-n", type=float, default=1e-6,
+                     help="calibration force amplitude [N] (default: %(default)g)")
+    com.add_argument("--force-frequency-hz", type=float, default=0.11,
+                     help="calibration force frequency f2 [Hz] (default: %(default)g)")
+    com.add_argument("--duration-s", type=float, default=4000.0,
+                     help="length of each run [s] (default: %(default)g)")
+    com.add_argument("--fs-hz", type=float, default=5.0,
+                     help="sample rate [Hz] (default: %(default)g)")
+    com.add_argument("--seed", type=int, default=0, help="sensor-noise seed (default: 0)")
+    com.add_argument("--json", action="store_true", help="print one JSON object")
+    com.add_argument("--plot", default=None, metavar="FILE.png",
+                     help="save the displacement ASDs, one per counterweight position")
+    com.set_defaults(func=_cmd_calibrate_com)
     _add_control_commands(sub)
     return parser
 
