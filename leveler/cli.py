@@ -225,6 +225,19 @@ def _add_control_commands(sub: argparse._SubParsersAction) -> None:  # type: ign
     m.add_argument("--seed", type=int, default=None,
                    help="with --sim: disturbance and noise seed (default: [sim] seed)")
     m.add_argument("--plot", default=None, help="with --sim: time-series plot (PNG)")
+    m.add_argument("--tp-peak-to-peak-m", type=float, default=None,
+                   help="the torsion pendulum's step under the same wave, read off the thrust "
+                   "stand [m]: gives the inverted/torsion ratio and the roll/pitch split "
+                   "(with --sim it is simulated)")
+    m.add_argument("--tp-com-x-m", type=float, default=1e-4,
+                   help="torsion pendulum's centre-of-mass offset along x, coupling roll [m] "
+                   "(default: %(default)g; measure yours with calibrate-com)")
+    m.add_argument("--tp-com-y-m", type=float, default=None,
+                   help="its offset along y, coupling pitch [m] (default: the model's, "
+                   "0.27 mm)")
+    m.add_argument("--tilt-axis-deg", type=float, default=30.0,
+                   help="with --sim: the piezo tilts the platform along this angle from the "
+                   "torsion pendulum's pitch axis (default: %(default)g)")
     _add_socket(m)
     m.set_defaults(func=_cmd_modulate)
 

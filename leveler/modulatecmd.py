@@ -3,19 +3,30 @@ procedure of the loop) or on the simulated stand, and the inverted pendulum's re
 
 The response, against what the piezo geometry of the config's model predicts, checks the
 lever arm (piezo stroke / support spacing) and the pendulum's amplification on the stand.
+
+With the torsion pendulum's own step (`--tp-peak-to-peak-m`, read off the thrust stand; or
+simulated with --sim) it gives the paper's ratio (3 um on the inverted pendulum went with about
+0.4 um on the torsion pendulum) and the roll/pitch split it implies. The inverted pendulum
+senses pitch (its axis is taken as the torsion pendulum's pitch axis); the torsion pendulum
+answers M g (pitch l_cm,y + roll l_cm,x) / K0 at its arm, so with its centre-of-mass offsets
+known (`leveler calibrate-com`) the roll that went with the measured pitch follows.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
 from leveler.client import Client, ClientError
 from leveler.modulation import Response, SquareWave, response
+from leveler.sim.torsion import TorsionParams
+from leveler.sim.torsion import simulate as simulate_tp
 
 
 def run_modulate_command(args: argparse.Namespace) -> int:
@@ -25,11 +36,34 @@ def run_modulate_command(args: argparse.Namespace) -> int:
         if args.config is not None:
             raise ClientError("--config goes with --sim (the daemon uses its own config)")
         result = _on_daemon(args)
+    tp_pp = result.pop("tp_simulated_peak_to_peak_m", args.tp_peak_to_peak_m)
+    if tp_pp is not None:
+        result["tp"] = _torsion(result, tp_pp, _tp_params(args))
     if args.json:
         print(json.dumps(result))
     else:
         print(_report(result))
     return 0
+
+
+def _tp_params(args: argparse.Namespace) -> TorsionParams:
+    base = TorsionParams()
+    return replace(base, com_x_m=args.tp_com_x_m,
+                   com_y_m=base.com_y_m if args.tp_com_y_m is None else args.tp_com_y_m)
+
+
+def _torsion(r: dict[str, Any], tp_pp_m: float, tp: TorsionParams) -> dict[str, Any]:
+    """The IP/TP ratio, and the roll that the TP's step implies next to the IP's pitch."""
+    pitch = r["tilt_peak_to_peak_rad"]
+    per_rad = tp.arm_m * tp.mass_kg * tp.gravity_m_per_s2 / tp.stiffness_nm_per_rad
+    out: dict[str, Any] = {"peak_to_peak_m": tp_pp_m, "ip_over_tp": r["ip_peak_to_peak_m"]
+                           / tp_pp_m, "pitch_only_peak_to_peak_m": per_rad * pitch * tp.com_y_m,
+                           "com_x_m": tp.com_x_m, "com_y_m": tp.com_y_m}
+    if tp.com_x_m:
+        roll = (tp_pp_m / per_rad - pitch * tp.com_y_m) / tp.com_x_m
+        out |= {"roll_peak_to_peak_rad": roll, "roll_over_pitch": roll / pitch,
+                "tilt_axis_deg": math.degrees(math.atan2(roll, pitch))}
+    return out
 
 
 def _on_daemon(args: argparse.Namespace) -> dict[str, Any]:
@@ -113,8 +147,17 @@ def _simulated(args: argparse.Namespace) -> dict[str, Any]:
     model = {"sensor_m_per_rad": pend.amplification * pend.sensor_arm_m,
              "tilt_rad_per_v": pz.gain_m_per_v / cfg.plant.platform.support_spacing_m}
     result = _result(wave, rows[:, 0], rows[:, 1], rows[:, 2], model, "simulated stand")
-    true_tilt = response(wave, rows[:, 0], np.array(rec.tilt_rad[first:]))
-    result["true_tilt_peak_to_peak_rad"] = true_tilt.peak_to_peak
+    pitch = np.array(rec.tilt_rad[first:])
+    result["true_tilt_peak_to_peak_rad"] = response(wave, rows[:, 0], pitch).peak_to_peak
+    # The torsion pendulum on the same platform: the piezo tilts it along an axis at
+    # --tilt-axis-deg from its pitch axis, so its roll is pitch x tan(angle) of the piezo's part.
+    piezo_pitch = (rows[:, 2] - pz.ref_v) * model["tilt_rad_per_v"]
+    roll = piezo_pitch * math.tan(math.radians(args.tilt_axis_deg))
+    tp = _tp_params(args)
+    theta = simulate_tp(tp, dt, 0.0, pitch, roll)
+    result["tp_simulated_peak_to_peak_m"] = response(wave, rows[:, 0],
+                                                     theta * tp.arm_m).peak_to_peak
+    result["tilt_axis_deg_simulated"] = args.tilt_axis_deg
     if args.plot:
         _plot(args.plot, wave, rows[:, 0], rows[:, 1], rows[:, 2])
         result["plot"] = args.plot
@@ -160,6 +203,21 @@ def _report(r: dict[str, Any]) -> str:
     if "true_tilt_peak_to_peak_rad" in r:
         lines.append(f"true tilt          {r['true_tilt_peak_to_peak_rad'] * 1e6:.4g} urad peak "
                      "to peak (simulation only, out of loop)")
+    if "tp" in r:
+        tp = r["tp"]
+        lines.append(f"torsion pendulum   {tp['peak_to_peak_m'] * 1e6:.4g} um peak to peak: "
+                     f"inverted / torsion = {tp['ip_over_tp']:.3g} (paper: about 3 / 0.4 = 7.5); "
+                     f"pitch alone would give {tp['pitch_only_peak_to_peak_m'] * 1e6:.4g} um "
+                     f"(l_cm,y {tp['com_y_m'] * 1e3:.3g} mm)")
+        if "roll_over_pitch" in tp:
+            lines.append(f"roll/pitch split   roll {tp['roll_peak_to_peak_rad'] * 1e6:.4g} urad "
+                         f"with the pitch: roll/pitch = {tp['roll_over_pitch']:.3g}, tilt axis "
+                         f"{tp['tilt_axis_deg']:.1f} deg from pitch (l_cm,x "
+                         f"{tp['com_x_m'] * 1e3:.3g} mm)"
+                         + (f"; simulated {r['tilt_axis_deg_simulated']:g} deg"
+                            if "tilt_axis_deg_simulated" in r else ""))
+        else:
+            lines.append("roll/pitch split   needs l_cm,x (--tp-com-x-m, from calibrate-com)")
     if "plot" in r:
         lines.append(f"plot               {r['plot']}")
     return "\n".join(lines)

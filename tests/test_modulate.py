@@ -111,3 +111,16 @@ def test_daemon_refuses_while_engaged_runs_when_forced_and_closes_the_loop_again
     assert states[:5] == ["engaged", "idle", "modulating", "idle", "engaged"]
     s = log.samples
     assert (s["state"] == "modulating").sum() >= 2 * 6 * 20  # every sample logged
+
+
+def test_torsion_pendulum_ratio_and_the_roll_pitch_split_it_implies() -> None:
+    out = _cli("--sim", "--amplitude-v", "5", "--period", "120s", "--cycles", "2",
+               "--tilt-axis-deg", "40", "--tp-com-x-m", "2e-4", "--json")
+    assert out.returncode == 0, out.stderr
+    tp = json.loads(out.stdout)["tp"]
+    assert tp["tilt_axis_deg"] == pytest.approx(40.0, abs=2.0)  # recovered from the two steps
+    assert tp["ip_over_tp"] > 1
+    # Without l_cm,x the roll cannot be told apart: the ratio still comes, the split does not.
+    out = _cli("--sim", "--amplitude-v", "5", "--period", "120s", "--cycles", "2",
+               "--tp-com-x-m", "0")
+    assert out.returncode == 0 and "needs l_cm,x" in out.stdout
