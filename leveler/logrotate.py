@@ -115,8 +115,9 @@ class RotatingLog:
     Files are `<prefix>-<UTC start, YYYYmmddTHHMMSS.ffffff>Z.mcap`: unique, and their
     names sort in time order. sample(), truth() and event() never block and never raise
     for a write error. on_fault(message) is called once per write failure, from the
-    closer thread (the constructor's own thread if the first file cannot be opened): keep
-    it quick. `healthy`, `last_error` and `dropped` tell the rest.
+    closer thread (the constructor's own thread if the first file cannot be opened),
+    instead of logging it as an error: keep it quick. `healthy`, `last_error` and
+    `dropped` tell the rest.
     """
 
     def __init__(
@@ -446,9 +447,12 @@ class RotatingLog:
             w.close()
 
     def _report(self, message: str) -> None:
-        _log.error("%s", message)
+        """One report per failure: to on_fault if given (the daemon logs it there), else to
+        the log as an error."""
         if self.on_fault is not None:
             self.on_fault(message)
+        else:
+            _log.error("%s", message)
 
 
 __all__ = ["RotatingLog"]

@@ -353,8 +353,13 @@ class LogWriter:
         if not all(isinstance(k, str) and isinstance(v, str) for k, v in meta.items()):
             raise TypeError("metadata keys and values must be str")
         self._path = Path(path)
+        # Written under another name and renamed once the header, topics and metadata are
+        # in it: a kill between creating the file and that flush would otherwise leave an
+        # empty `path` that no reader (nor `leveler recover`) can open. A kill before the
+        # rename leaves only `<path>.new`.
+        new = self._path.with_name(self._path.name + ".new")
         try:
-            self._file = open(self._path, "wb")  # owned by the writer thread from here on
+            self._file = open(new, "wb")  # owned by the writer thread from here on
             self._mcap = _McapFile(self._file, _library(), compression, chunk_size)
             self._sample_ch = self._channel(SAMPLE_TOPIC, "leveler.Sample", _SAMPLE_FIELDS)
             self._truth_ch = (
@@ -367,10 +372,13 @@ class LogWriter:
             self._event_ch = self._channel(EVENT_TOPIC, "leveler.Event", _EVENT_FIELDS)
             self._mcap.metadata(METADATA_NAME, meta)
             self._file.flush()  # header, topics and metadata reach the OS even if we die now
+            os.replace(new, self._path)
         except OSError as e:
             if hasattr(self, "_file"):
                 with contextlib.suppress(OSError):  # the buffered header fails again (ENOSPC)
                     self._file.close()
+                with contextlib.suppress(OSError):
+                    new.unlink(missing_ok=True)
             raise LogError(f"{self._path}: cannot create log: {e.strerror}") from e
 
         self._interval = chunk_interval_s
