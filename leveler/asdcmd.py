@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 
 import numpy as np
 
-from leveler.logreader import LogData, LogError, read_log
+from leveler.logreader import LogData, LogError, partial_note, read_log
 from leveler.spectral import Spectrum, lpsd
 
 TABLE_FREQS_HZ = (1e-4, 1e-3, 1e-2, 1e-1, 1.0)
@@ -27,8 +28,13 @@ def channel(log: LogData, name: str, path: str) -> tuple[np.ndarray, float]:
     if values.dtype.kind not in "fi":
         raise LogError(f"{path}: channel {name!r} is not numeric")
     if len(values) < 16:
-        raise LogError(f"{path}: only {len(values)} samples of {name!r}; need at least 16")
-    fs = 1.0 / float(np.median(np.diff(t)))
+        early = f" (the log is incomplete: {log.stop_reason})" if not log.complete else ""
+        raise LogError(f"{path}: only {len(values)} samples of {name!r}; need at least 16"
+                       f"{early}")
+    step = float(np.median(np.diff(t)))
+    if not step > 0:  # also NaN: times that do not advance have no sample rate
+        raise LogError(f"{path}: the sample times do not advance (median step {step:g} s)")
+    fs = 1.0 / step
     values = values.astype(float)
     if not np.all(np.isfinite(values)):
         bad = int(np.count_nonzero(~np.isfinite(values)))
@@ -46,7 +52,11 @@ def _at(spec: Spectrum, f: float) -> float | None:
 def run_asd_command(args: argparse.Namespace) -> int:
     curves: list[tuple[str, Spectrum]] = []
     for path in [args.log, *([args.compare] if args.compare else [])]:
-        x, fs = channel(read_log(path), args.channel, path)
+        log = read_log(path)
+        x, fs = channel(log, args.channel, path)
+        if not log.complete:
+            print(f"leveler asd: {partial_note(path, log.stop_reason, len(x))}",
+                  file=sys.stderr)
         curves.append((path, lpsd(x, fs)))
     if args.json:
         print(json.dumps({label: {"freq_hz": s.freq_hz.tolist(), "asd": s.asd.tolist()}

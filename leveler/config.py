@@ -74,7 +74,10 @@ def _convert(tp: Any, value: Any, key: str, meta: typing.Mapping[str, Any]) -> A
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise ConfigError(f"{key}: expected a number, got {value!r}")
-        value = float(value)
+        try:
+            value = float(value)
+        except OverflowError:  # TOML integers are unbounded in tomllib
+            raise ConfigError(f"{key}: must be finite, got an integer beyond 1.8e308") from None
         if not math.isfinite(value) and not meta.get("allow_inf", False):
             raise ConfigError(f"{key}: must be finite, got {value!r}")
         return _bounded(value, key, meta)
@@ -109,8 +112,8 @@ def build(cls: type[T], table: dict[str, Any], where: str = "") -> T:
         return cls(**values)
     except ConfigError as exc:
         raise ConfigError(f"{prefix}{exc}") from None
-    except ValueError as exc:
-        raise ConfigError(f"{where or 'config'}: {exc}") from None
+    except ValueError as exc:  # a check across fields; at the top its message names the keys
+        raise ConfigError(f"{where}: {exc}" if where else str(exc)) from None
 
 
 def load_toml(path: str | Path) -> dict[str, Any]:
@@ -121,6 +124,10 @@ def load_toml(path: str | Path) -> dict[str, Any]:
             return tomllib.load(fh)
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such config file") from None
+    except OSError as exc:  # a directory, no permission: refuse to start, do not guess
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    except UnicodeDecodeError as exc:  # tomllib decodes before parsing: not a TOMLDecodeError
+        raise ConfigError(f"{path}: invalid TOML: not UTF-8 text (byte {exc.start})") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: invalid TOML: {exc}") from None
 

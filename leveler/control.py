@@ -4,7 +4,9 @@ A Unix stream socket, mode 0660 and owned by the configured group; every connect
 peer credentials (SO_PEERCRED) are checked as well, because a file mode is easy to loosen
 by accident. One thread per connection (bounded by max_clients) reads line-delimited JSON
 requests and hands them to a `Handler`; a malformed request gets an error line back and the
-daemon carries on.
+daemon carries on. A client holds its slot only while it keeps up: each request must be
+complete within idle_timeout_s of the last (a byte a second does not keep a slot), and a
+watcher must read its stream.
 """
 
 from __future__ import annotations
@@ -12,11 +14,13 @@ from __future__ import annotations
 import contextlib
 import errno
 import grp
+import io
 import logging
 import os
 import socket
 import struct
 import threading
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -80,6 +84,25 @@ def resolve_group(name: str) -> int:
         return grp.getgrnam(name).gr_gid
     except KeyError:
         raise KeyError(f"control.group: no group named {name!r} on this machine") from None
+
+
+class _Deadline(io.RawIOBase):
+    """The connection as a raw stream whose reads all end by one deadline, so a line that
+    trickles in times out as a whole rather than per byte."""
+
+    def __init__(self, conn: socket.socket) -> None:
+        self._conn = conn
+        self.deadline = 0.0  # time.monotonic()
+
+    def readable(self) -> bool:
+        return True
+
+    def readinto(self, buf: Any) -> int:
+        left = self.deadline - time.monotonic()
+        if left <= 0:
+            raise TimeoutError
+        self._conn.settimeout(left)
+        return self._conn.recv_into(buf)
 
 
 def _linger(conn: socket.socket) -> None:
@@ -186,10 +209,19 @@ class ControlServer:
                     conn.sendall(encode({"ok": False, "error": why}))
                     _linger(conn)
                     return
-                conn.settimeout(self._idle)
-                reader = conn.makefile("rb")
+                raw = _Deadline(conn)
+                reader = io.BufferedReader(raw)
                 while not self._closing.is_set():
-                    line = reader.readline(MAX_LINE_BYTES + 1)
+                    raw.deadline = time.monotonic() + self._idle
+                    try:
+                        line = reader.readline(MAX_LINE_BYTES + 1)
+                    except TimeoutError:
+                        conn.settimeout(1.0)  # a client that reads nothing cannot stall us
+                        conn.sendall(encode({"ok": False, "error": (
+                            f"idle: no complete request within {self._idle:g} s; closing "
+                            "the connection")}))
+                        return
+                    conn.settimeout(self._idle)  # for the reply: a client must read it
                     if not line:
                         return
                     if len(line) > MAX_LINE_BYTES:
@@ -212,11 +244,13 @@ class ControlServer:
             req = parse_request(line)
             if req["verb"] == "watch":
                 conn.sendall(encode({"ok": True, "watching": True}))
-                conn.settimeout(None)
-                for item in self._handler.watch(req):
-                    if self._closing.is_set():
-                        break
-                    conn.sendall(encode(item))
+                try:  # a watcher that stops reading for idle_timeout_s is dropped
+                    for item in self._handler.watch(req):
+                        if self._closing.is_set():
+                            break
+                        conn.sendall(encode(item))
+                except OSError:
+                    pass  # the watcher left (or stalled): not an error of the daemon's
                 return False
             reply = self._handler.handle(req, peer)
         except ProtocolError as exc:

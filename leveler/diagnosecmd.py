@@ -6,11 +6,13 @@ import argparse
 import json
 import math
 import re
+import sys
 from pathlib import Path
 from typing import Any
 
 from leveler.diagnose import BANDS_HZ, Diagnosis, diagnose
 from leveler.errors import LogError
+from leveler.logreader import partial_note
 from leveler.persist import write_atomic
 from leveler.plots import block_means, plot_asd
 from leveler.predict import Measured, load_measured
@@ -177,6 +179,9 @@ def _nm(v: float | None) -> str:
 
 def run_diagnose_command(args: argparse.Namespace) -> int:
     meas = load_measured(args.log, args.model)
+    if meas.incomplete:
+        print(f"leveler diagnose: {partial_note(args.log, meas.incomplete, len(meas.y_m))}",
+              file=sys.stderr)
     d = diagnose(meas, max_effects=args.max_effects)
     model_out = None
     if d.effects:

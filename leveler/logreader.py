@@ -29,7 +29,7 @@ from lz4 import frame as lz4_frame
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
 from mcap.opcode import Opcode
-from mcap.records import Attachment, Channel, Header, McapRecord, Metadata, Schema
+from mcap.records import Attachment, Channel, Header, McapRecord, Metadata, Schema, Statistics
 from mcap.writer import CompressionType, Writer
 
 from leveler.errors import LogError
@@ -53,22 +53,23 @@ _PARSED = {
     Opcode.METADATA: Metadata,
     Opcode.ATTACHMENT: Attachment,
 }
-# What damaged bytes can raise while parsing a record whose length checked out.
-_DAMAGE = (McapError, ValueError, struct.error, zstandard.ZstdError, RuntimeError)
+# What damaged bytes can raise while parsing a record whose length checked out (an
+# OverflowError: a chunk's uncompressed size damaged to 2^63 or more).
+_DAMAGE = (McapError, ValueError, struct.error, zstandard.ZstdError, RuntimeError, OverflowError)
 _DTYPES = {"int": np.int64, "float": np.float64, "bool": np.bool_, "str": np.str_}
 _BATCH = 8192  # messages decoded at once: bounds the memory of intermediate dicts
 
 
 @dataclass
 class LogData:
-    """One log as columns; `complete` tells whether the writer finished the file."""
+    """One log as columns; `complete`: the writer finished the file and all of it read."""
 
     samples: dict[str, np.ndarray]
     truth: dict[str, np.ndarray]
     events: list[dict]
     metadata: dict[str, dict[str, str]]
     complete: bool
-    # Why reading stopped early ("" when complete): tells a crash cut from corruption.
+    # Why the log is incomplete ("" when complete): tells a crash cut from corruption.
     stop_reason: str = ""
     environment: dict[str, np.ndarray] = field(default_factory=dict)
 
@@ -112,6 +113,7 @@ class _Scan:
         self.path = Path(path)
         self.complete = False
         self.stop_reason = ""
+        self.summary_messages: int | None = None  # the count the writer put in the summary
 
     def records(self) -> Iterator[McapRecord | _Messages]:
         try:
@@ -121,8 +123,14 @@ class _Scan:
         with f:
             head = f.read(len(_MAGIC))
             if head != _MAGIC:
-                what = "empty file" if not head else f"starts with {head!r}"
-                raise LogError(f"{self.path}: not an MCAP file ({what})")
+                if not head:
+                    what = "empty file"
+                elif _MAGIC.startswith(head):
+                    what = f"cut short at byte {len(head)}, inside the magic"
+                else:
+                    what = f"starts with {head!r}"
+                raise LogError(f"{self.path}: not an MCAP file ({what}); give a log written "
+                               "by `leveler run` or `leveler sim`")
             yield from self._records(f, os.fstat(f.fileno()).st_size)
 
     def _records(self, f: IO[bytes], size: int) -> Iterator[McapRecord | _Messages]:
@@ -140,7 +148,9 @@ class _Scan:
             body = f.read(length)
             try:
                 if summary and opcode != Opcode.FOOTER:
-                    pass
+                    if opcode == Opcode.STATISTICS:
+                        stream = ReadDataStream(BytesIO(body))
+                        self.summary_messages = Statistics.read(stream).message_count
                 elif opcode == Opcode.CHUNK:
                     yield from _split(_decompress(body))
                 elif opcode == Opcode.MESSAGE:
@@ -155,7 +165,7 @@ class _Scan:
                     self.stop_reason = "" if self.complete else "footer without closing magic"
                     return
             except _DAMAGE as e:
-                self.stop_reason = f"record at byte {pos} unreadable: {e}"
+                self.stop_reason = f"record at byte {pos} unreadable: {str(e) or type(e).__name__}"
                 return
             pos += _RECORD.size + length
 
@@ -199,6 +209,9 @@ def _columns(
     JSON has no NaN/Inf: orjson wrote them as null, which np.float64 reads back as NaN.
     """
     rows = orjson.loads(b"[" + b",".join(payloads) + b"]")
+    missing = [k for k in types if k not in rows[0]]
+    if missing:  # (a later message lacking one is a KeyError below)
+        raise ValueError(f"a message lacks {', '.join(missing)}")
     cols = {"log_time_ns": np.array(times, dtype=np.int64)}
     for key in rows[0]:
         cols[key] = np.array([r[key] for r in rows], dtype=_DTYPES.get(types.get(key, "")))
@@ -234,10 +247,12 @@ def read_log(path: str | Path) -> LogData:
               ENVIRONMENT_TOPIC: _Table(Environment)}
     by_channel: dict[int, _Table] = {}
     metadata: dict[str, dict[str, str]] = {}
+    read = 0
     try:
         for record in scan.records():
             if type(record) is dict:
                 for channel_id, messages in record.items():
+                    read += len(messages)
                     table = by_channel.get(channel_id)
                     if table is not None:
                         table.times += [m[0] for m in messages]
@@ -259,15 +274,32 @@ def read_log(path: str | Path) -> LogData:
         env_cols = env.result() if env in by_channel.values() else {}
     except orjson.JSONDecodeError as e:
         raise LogError(f"{scan.path}: a message is not valid JSON: {e}") from e
+    except (KeyError, TypeError, ValueError) as e:  # checksums passed: not what we write
+        raise LogError(f"{scan.path}: messages are not as leveler writes them "
+                       f"({type(e).__name__}: {e}); is this a leveler log?") from e
+    complete, reason = scan.complete, scan.stop_reason
+    if complete and scan.summary_messages is not None and read < scan.summary_messages:
+        # a record with a damaged opcode reads as one of a later MCAP version and is
+        # skipped; the writer's count is what tells
+        complete = False
+        reason = (f"{scan.summary_messages - read} of its {scan.summary_messages} messages "
+                  "unreadable")
     return LogData(
         samples=samples,
         truth=truth_cols,
         events=event_list,
         metadata=metadata,
-        complete=scan.complete,
-        stop_reason=scan.stop_reason,
+        complete=complete,
+        stop_reason=reason,
         environment=env_cols,
     )
+
+
+def partial_note(path: str | Path, stop_reason: str, samples: int) -> str:
+    """What a command says when it used an incomplete log (cut short or damaged)."""
+    return (f"note: {path} is incomplete ({stop_reason}); used its {samples} readable "
+            f"samples. `leveler recover {path} --out FIXED.mcap` copies them into a complete "
+            "file")
 
 
 def recover(src: str | Path, dst: str | Path) -> int:
@@ -333,6 +365,7 @@ __all__ = [
     "TRUTH_TOPIC",
     "LogData",
     "LogError",
+    "partial_note",
     "read_log",
     "recover",
 ]

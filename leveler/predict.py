@@ -45,6 +45,7 @@ class Measured:
     gains: tuple[float, float, float]  # kp, ki, kd of the logged controller
     controller: ControllerConfig | None = None  # as logged (None: not a leveler log)
     engaged: np.ndarray | None = None  # per sample: was the loop closed?
+    incomplete: str = ""  # why the log is incomplete, as read_log says ("" if it is not)
 
     @property
     def dt_s(self) -> float:
@@ -79,7 +80,8 @@ def load_measured(path: str | Path, model: str | Path | None = None) -> Measured
     s = data.samples
     n = len(s.get("t_s", ()))
     if n < 1000:
-        raise LogError(f"{path}: {n} samples; replay needs at least 1000")
+        early = f" (the log is incomplete: {data.stop_reason})" if not data.complete else ""
+        raise LogError(f"{path}: {n} samples; replay needs at least 1000{early}")
     seq = s["seq"]
     gaps = np.flatnonzero(np.diff(seq) != 1)
     if len(gaps):
@@ -115,7 +117,7 @@ def load_measured(path: str | Path, model: str | Path | None = None) -> Measured
     c = logged.controller
     return Measured(path, Signals(t, dt, temp), u, y, cfg, source, text, nbad,
                     (c.kp_v_per_m, c.ki_v_per_m_s, c.kd_v_s_per_m),
-                    c if logged_text else None, s["state"] == "engaged")
+                    c if logged_text else None, s["state"] == "engaged", data.stop_reason)
 
 
 def excitation_v(meas: Measured) -> np.ndarray | None:

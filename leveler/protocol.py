@@ -19,6 +19,9 @@ import orjson
 VERSION = 1
 MAX_LINE_BYTES = 64 * 1024
 VERBS = ("status", "start", "stop", "tune", "watch", "rotate", "reset", "modulate")
+#: verbs that take no arguments: any other key is a mistake, refused rather than ignored
+NO_ARGS = ("status", "start", "stop", "rotate", "reset")
+MAX_WATCH_HZ = 1000.0
 
 #: tune arguments: config key -> lower bound (inclusive) or None
 TUNE_KEYS: dict[str, float | None] = {
@@ -75,13 +78,31 @@ def parse_request(line: bytes) -> dict[str, Any]:
     if not isinstance(req, dict):
         raise ProtocolError("request must be a JSON object")
     version = req.get("v", VERSION)
-    if version != VERSION:
+    if type(version) is not int or version != VERSION:  # not 1.0, not true
         raise ProtocolError(f"protocol version {version!r} not supported (this daemon speaks "
                             f"{VERSION})")
     verb = req.get("verb")
     if verb not in VERBS:
         raise ProtocolError(f"unknown verb {verb!r}; verbs: {', '.join(VERBS)}")
+    if verb in NO_ARGS:  # `{"verb": "stop", "force": 1}` must not stop the loop
+        extra = sorted(set(req) - {"v", "verb"})
+        if extra:
+            raise ProtocolError(f"{verb}: unknown key {extra[0]!r}; {verb} takes no arguments")
+    elif verb == "watch":
+        _check_watch(req)
     return req
+
+
+def _check_watch(req: dict[str, Any]) -> None:
+    """A watch request's rate_hz (default 10), checked before the stream is promised."""
+    extra = sorted(set(req) - {"v", "verb", "rate_hz"})
+    if extra:
+        raise ProtocolError(f"watch: unknown key {extra[0]!r}; keys: rate_hz")
+    rate = req.get("rate_hz", 10.0)
+    if isinstance(rate, bool) or not isinstance(rate, int | float) or not (
+            0 < rate <= MAX_WATCH_HZ):
+        raise ProtocolError(f"watch: rate_hz must be a number in (0, {MAX_WATCH_HZ:g}], "
+                            f"got {rate!r}")
 
 
 def tune_args(req: dict[str, Any]) -> tuple[dict[str, float], bool]:

@@ -14,6 +14,7 @@ import argparse
 import dataclasses
 import json
 import math
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +22,7 @@ import numpy as np
 
 from leveler.diagnose import BANDS_HZ, gap, warmup_samples
 from leveler.errors import LogError
+from leveler.logreader import partial_note
 from leveler.pid import PID
 from leveler.predict import Measured, Predictor, load_measured
 from leveler.sim.pendulum import PendulumModel
@@ -196,6 +198,9 @@ def report(r: dict[str, Any]) -> str:
 
 def run_replay_command(args: argparse.Namespace) -> int:
     meas = load_measured(args.log, args.model)
+    if meas.incomplete:
+        print(f"leveler replay: {partial_note(args.log, meas.incomplete, len(meas.y_m))}",
+              file=sys.stderr)
     result, pred, span = replay(meas, args.gains)
     if args.out:
         if Path(args.out).resolve() == Path(args.log).resolve():
