@@ -57,6 +57,11 @@ def test_simulated_procedure_recovers_the_piezo_geometry(tmp_path: Path) -> None
     assert r["ip_peak_to_peak_m"] == pytest.approx(0.899e-6, rel=0.02)
     assert r["measured_over_model"] == pytest.approx(1.0, abs=0.02)
     assert (tmp_path / "m.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    helped = _cli("--help")
+    assert helped.returncode == 0
+    for words in ("--amplitude-v", "--force", "refuses while the", "--tp-peak-to-peak-m",
+                  "roll/pitch split", "virtual time"):
+        assert words in " ".join(helped.stdout.split()), words
     bad = _cli("--sim", "--amplitude-v", "100", "--period", "60s")
     assert bad.returncode == 2 and "output" not in bad.stdout  # refused, no traceback
     assert "Traceback" not in bad.stderr
