@@ -171,7 +171,9 @@ class Loop:
         p = self.policy
         why = {Status.TIMEOUT: "timeout", Status.INVALID: "invalid (NaN or unparsable)",
                Status.RAILED: "railed (at the end of the sensor's range)"}.get(r.status, "")
-        if r.status == Status.OK:
+        if r.status == Status.OK and not math.isfinite(r.value_m):
+            why = "not finite despite an OK status"  # a driver parsed "inf": never to the PID
+        elif r.status == Status.OK:
             same = r.value_m == self._last_value_m
             self._same_in_a_row = self._same_in_a_row + 1 if same else 0
             if p.stuck_after_samples and self._same_in_a_row + 1 >= p.stuck_after_samples:

@@ -132,6 +132,33 @@ class GlitchySensor(FailingSensor):
         return self.inner.read(t_s)
 
 
+class InfiniteSensor(FailingSensor):
+    """Claims an OK reading of +inf on the listed reads, as a driver that parsed "inf" would."""
+
+    def __init__(self, inner, bad: set[int]) -> None:  # type: ignore[no-untyped-def]
+        super().__init__(inner, fail_at=0)
+        self.bad = bad
+
+    def read(self, t_s: float) -> Reading:
+        self.n += 1
+        r = self.inner.read(t_s)
+        return replace(r, value_m=math.inf) if self.n in self.bad else r
+
+
+def test_a_non_finite_ok_reading_is_held_not_fed_to_the_pid() -> None:
+    """Hypothesis found this one: an OK-status inf reached PID.update, which raised."""
+    loop, mem, clock = make_loop()
+    loop.sensor = InfiniteSensor(loop.sensor, bad={10, 11})
+    run(loop, clock, 5)
+    loop.engage(0.5)
+    run(loop, clock, 10)
+    assert loop.state == ENGAGED
+    held = [s for s in mem.samples if math.isinf(s.sensor_m)]
+    assert len(held) == 2 and all(s.status != 0 for s in held)
+    assert all(s.command_v == mem.samples[8].command_v for s in held)
+    assert any(e.kind == "bad_reading" and "not finite" in e.reason for e in mem.events)
+
+
 class GlitchyActuator:
     """Refuses exactly the listed writes (1-based); otherwise the real simulated actuator."""
 
