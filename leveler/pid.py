@@ -87,9 +87,13 @@ class PIDConfig:
         _require_non_negative("tracking_time_s", self.tracking_time_s)
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(slots=True)
 class PIDOutput:
-    """One update's result; ``p_v + i_v + d_v`` is the command before clamping and slewing."""
+    """One update's result; ``p_v + i_v + d_v`` is the command before clamping and slewing.
+
+    Not frozen: a frozen dataclass sets each field through object.__setattr__, which was
+    two thirds of an update's cost (bench/pid_speed.py). A fresh one is returned each time.
+    """
 
     setpoint_m: float  # effective (ramped) setpoint
     error_m: float
