@@ -34,11 +34,15 @@ resonance gain; a floor above it is met exactly with a PI zero below the crossov
 default stand only up to ~90.7 deg: kp itself lifts the resonance gain). The crossover
 (unless given) is the highest that keeps both, found by bisection (the resonance gain grows
 with it), and never above f_r / 5, which keeps it where the plant is flat and its phase is
-not the resonance's (this binds only for Q below ~2.5). No D: it helps only by putting
-complex zeros on the resonance (kd ~ ki / w_r^2, tau ~ 0), a cancellation of a Q ~ 19 pole
-pair that a few percent of error in m g L_cm undoes (+5 % of mass makes such a design with
-a crossover of f_r / 10 unstable). The result is checked with `control.stability_margins`
-and the closed-loop poles.
+not the resonance's (this binds only for Q below ~2.5). No D in this rule. A D placed *on*
+the resonance (kd ~ ki / w_r^2: complex zeros cancelling a Q ~ 19 pole pair) is undone by a
+few percent of error in m g L_cm. A larger, unfiltered D (zeros well below f_r) instead
+*damps* it, and that lifts the integral ~46x on the default stand: config/sim.toml's hand
+design, proven stable for m g L_cm -5..+3 %, inertia -20..+25 %, damping x0.5..2
+(tests/test_tuning.py).
+This rule does not design that yet: the damping rests on the loop's phase lag at f_r and
+needs that robustness sweep, which is not automated here. The result is checked with
+`control.stability_margins` and the closed-loop poles.
 """
 
 from __future__ import annotations

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -45,8 +46,9 @@ def logs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
                    "--seed", "2", "--out", str(closed), cwd=tmp)
     assert proc.returncode == 0, proc.stderr
     # an "open loop" log: the same plant with the loop never engaged
-    cfg = (REPO / "config" / "sim.toml").read_text().replace("ki_v_per_m_s = 7.0e5",
-                                                              "ki_v_per_m_s = 0.0")
+    cfg, n = re.subn(r"(?m)^(ki_v_per_m_s|kd_v_s_per_m) = .*$", r"\1 = 0.0",
+                     (REPO / "config" / "sim.toml").read_text())
+    assert n == 2
     (tmp / "open.toml").write_text(cfg)
     opened = tmp / "open.mcap"
     proc = leveler("sim", "--config", str(tmp / "open.toml"), "--duration", "3h", "--seed", "2",

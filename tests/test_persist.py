@@ -15,10 +15,10 @@ REPO = Path(__file__).resolve().parents[1]
 
 def test_values_replaced_in_place_comments_kept() -> None:
     text = (REPO / "config" / "sim.toml").read_text()
-    out = set_keys(text, "controller", {"ki_v_per_m_s": 6.5e5, "kp_v_per_m": 1000.0})
-    assert "ki_v_per_m_s = 650000.0        # integral-dominant" in out
+    out = set_keys(text, "controller", {"d_filter_tau_s": 0.25, "kp_v_per_m": 1000.0})
+    assert "d_filter_tau_s = 0.25        # unfiltered" in out
     assert "kp_v_per_m = 1000.0\n" in out
-    assert out.count("ki_v_per_m_s") == 1
+    assert out.count("d_filter_tau_s") == 1
     before, after = text.splitlines(), out.splitlines()
     assert len(before) == len(after)
     assert sum(a != b for a, b in zip(before, after, strict=True)) == 2
