@@ -26,8 +26,21 @@ test: $(STAMP) device-deps
 test-slow: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow
 
-bench: $(STAMP)
-	$(BIN)/python bench/run.py
+# The bench's extra dependency (simple-pid, the PID baseline), its own stamp.
+BENCH_STAMP := $(VENV)/.bench-installed
+$(BENCH_STAMP): $(STAMP) pyproject.toml
+	$(BIN)/python -m pip install --quiet -e '.[test,bench]'
+	touch $(BENCH_STAMP)
+
+# One table of every figure beside its baseline, also bench/results.json (docs/performance.md):
+# 10-12 minutes on 2 cores. `make bench-quick` (or `make bench ARGS=--quick`): under 2.
+# ARGS go to bench/run.py, e.g. ARGS="--quick --only sim_speed,pid_speed".
+bench: $(BENCH_STAMP)
+	$(BIN)/python bench/run.py $(ARGS)
+
+.PHONY: bench-quick
+bench-quick: $(BENCH_STAMP)
+	$(BIN)/python bench/run.py --quick $(ARGS)
 
 # 100 Hz over Modbus TCP on loopback for 10 minutes (and the sim backend as baseline): 20 min.
 bench-modbus: $(STAMP)

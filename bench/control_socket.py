@@ -15,10 +15,13 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
+
+from common import REPO, row  # beside this script
 
 from leveler.client import Client
 
-REPO = Path(__file__).resolve().parents[1]
+SECTION = "control socket"
 
 
 def echo_rtt_s(n: int = 500) -> float:
@@ -121,21 +124,27 @@ def daemon_figures(rate_hz: float = 1000.0, phase_s: float = 5.0) -> dict[str, f
     }
 
 
-def main() -> dict[str, float]:
-    echo = echo_rtt_s()
-    d = daemon_figures()
-    print(f"\ncontrol socket, daemon at {d['rate_hz']:g} Hz on the simulated plant")
-    print(f"{'what':<44} {'value':>12} {'x baseline':>11}")
-    print(f"{'bare Unix-socket echo round trip (baseline)':<44} {echo * 1e3:9.3f} ms {1:10.1f}x")
-    print(f"{'status round trip, median':<44} {d['status_rtt_median_s'] * 1e3:9.3f} ms "
-          f"{d['status_rtt_median_s'] / echo:10.1f}x")
-    print(f"{'status round trip, p99':<44} {d['status_rtt_p99_s'] * 1e3:9.3f} ms "
-          f"{d['status_rtt_p99_s'] / echo:10.1f}x")
-    print(f"{'`leveler status` command, median':<44} {d['cli_status_median_s'] * 1e3:9.1f} ms")
-    print(f"{'loop overruns per 1e5 cycles, no traffic':<44} {d['overruns_per_1e5_quiet']:12.1f}")
-    print(f"{'loop overruns per 1e5 cycles, status at 50/s':<44} "
-          f"{d['overruns_per_1e5_paced']:12.1f}")
-    print(f"{'  (status round trip at 50/s, median)':<44} {d['paced_rtt_median_s'] * 1e3:9.3f} ms")
-    storm = f"loop overruns per 1e5, {d['status_requests'] / 5:.0f} requests/s"
-    print(f"{storm:<44} {d['overruns_per_1e5_storm']:12.1f}")
-    return {"echo_rtt_median_s": echo, **d}
+def run(quick: bool) -> list[dict[str, Any]]:
+    phase_s = 2.0 if quick else 5.0
+    echo = echo_rtt_s(200 if quick else 500)
+    d = daemon_figures(phase_s=phase_s)
+    rate = f"daemon at {d['rate_hz']:g} Hz on the simulated plant"
+    storm_rate = d["status_requests"] / phase_s
+    return [
+        row(SECTION, "bare Unix-socket echo round trip (baseline)", echo * 1e3, "ms",
+            note="connect, one line each way, close: the floor for any round trip here"),
+        row(SECTION, "status round trip, median", d["status_rtt_median_s"] * 1e3, "ms",
+            baseline="echo", ratio=d["status_rtt_median_s"] / echo,
+            note=f"{rate}; back-to-back requests for {phase_s:g} s"),
+        row(SECTION, "status round trip, p99", d["status_rtt_p99_s"] * 1e3, "ms",
+            baseline="echo", ratio=d["status_rtt_p99_s"] / echo),
+        row(SECTION, "`leveler status` command, median", d["cli_status_median_s"] * 1e3, "ms",
+            note="a new Python process each time: start-up dominates"),
+        row(SECTION, "overruns per 1e5 cycles, no traffic", d["overruns_per_1e5_quiet"],
+            "per 1e5", note=f"{phase_s:g} s at {d['rate_hz']:g} Hz"),
+        row(SECTION, "overruns per 1e5 cycles, status at 50/s",
+            d["overruns_per_1e5_paced"], "per 1e5",
+            note=f"round trip meanwhile {d['paced_rtt_median_s'] * 1e3:.3f} ms median"),
+        row(SECTION, f"overruns per 1e5 cycles, status at {storm_rate:.0f}/s",
+            d["overruns_per_1e5_storm"], "per 1e5", note="the back-to-back storm above"),
+    ]
