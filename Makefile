@@ -46,6 +46,13 @@ bench-quick: $(BENCH_STAMP)
 bench-modbus: $(STAMP)
 	$(BIN)/python bench/modbus_loop.py 600
 
+# Issue 8's soak: the daemon's real-time loop at 1 kHz with logging on for an hour (as root:
+# SCHED_FIFO + mlockall as the service), next to cyclictest (10 min), with its RSS growth:
+# about 72 minutes. Shorter: `$(BIN)/python bench/loop_timing.py --duration SECONDS`.
+.PHONY: bench-soak
+bench-soak: $(STAMP)
+	$(BIN)/python bench/loop_timing.py --duration 3600
+
 lint: $(STAMP)
 	$(BIN)/ruff check .
 
