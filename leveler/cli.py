@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
+import signal
 import sys
 from collections.abc import Sequence
 
@@ -178,10 +181,11 @@ def _add_control_commands(sub: argparse._SubParsersAction) -> None:  # type: ign
     t.add_argument("--kp", type=float, help="proportional gain [V/m]")
     t.add_argument("--ki", type=float, help="integral gain [V/(m s)]")
     t.add_argument("--kd", type=float, help="derivative gain [V s/m]")
-    t.add_argument("--setpoint", type=float, help="setpoint of the sensor reading [m]")
+    t.add_argument("--setpoint", type=float, help="setpoint of the sensor reading [m] (SI: "
+                   "1e-6 is 1 um; refused beyond +-1 mm)")
     t.add_argument("--min-v", type=float, help="lower output limit [V]")
     t.add_argument("--max-v", type=float, help="upper output limit [V]")
-    t.add_argument("--slew", type=float, help="output slew limit [V/s]")
+    t.add_argument("--slew", type=float, help="output slew limit [V/s]; inf: no limit")
     t.add_argument("--persist", action="store_true", help="also write the values to the "
                    "daemon's config file")
     t.add_argument("--suggest", action="store_true", help="propose gains from the plant model")
@@ -288,7 +292,10 @@ def build_parser() -> argparse.ArgumentParser:
         "method (Troebs & Heinzel 2006), which keeps many averages at high frequency and "
         "still reaches 0.1 mHz in a long log. Channels: any numeric field of the sample "
         "topic (sensor_m, applied_v, error_m, ...) or, in simulated logs, the truth topic "
-        "(tilt_rad, thermal_tilt_rad, pendulum_rad, ...).")
+        "(tilt_rad, thermal_tilt_rad, pendulum_rad, ...). Values a daemon logged as null "
+        "(held bad readings, driver errors) are bridged by linear interpolation if they are "
+        "at most 1% of the record and no gap is longer than 10 s, and cut off if they are at "
+        "its start or end; a note on stderr says how many. Beyond that the log is refused.")
     asd.add_argument("log", help="MCAP log written by leveler")
     asd.add_argument("--channel", default="sensor_m",
                      help="field to analyse (default: %(default)s)")
@@ -544,7 +551,11 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+#: what a shell reports for a command killed by SIGPIPE (`yes | head` gives it to `yes`)
+EXIT_BROKEN_PIPE = 128 + signal.SIGPIPE
+
+
+def _run(argv: Sequence[str] | None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args))
@@ -554,6 +565,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"leveler {args.command}: interrupted", file=sys.stderr)
         return 130
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run one command. Output into a pipe that closed early (`leveler status | head -3`)
+    ends it quietly, as SIGPIPE ends other tools: no traceback, exit 141."""
+    try:
+        try:
+            return _run(argv)
+        finally:  # here rather than at exit, where a closed pipe can only be complained of
+            sys.stdout.flush()
+    except BrokenPipeError:
+        with contextlib.suppress(OSError):  # nothing more may reach the closed pipe
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
 
 
 if __name__ == "__main__":

@@ -68,6 +68,8 @@ class Client:
             line = self._reader.readline(MAX_LINE_BYTES * 16)
         except TimeoutError:
             raise ClientError(f"the daemon on {self.path} did not answer in time") from None
+        except OSError as exc:
+            raise ClientError(f"reading from {self.path} failed: {exc}") from None
         if not line:
             raise ClientError(f"the daemon on {self.path} closed the connection")
         reply = orjson.loads(line)
@@ -80,8 +82,23 @@ class Client:
         try:
             self._sock.sendall(orjson.dumps({"v": VERSION, "verb": verb, **args}) + b"\n")
         except OSError as exc:
-            raise ClientError(f"sending to {self.path} failed: {exc}") from None
+            # A daemon that refuses the connection (too many clients) answers at once and
+            # closes: its reason is waiting to be read, and says more than EPIPE.
+            refusal = self._pending_refusal()
+            raise ClientError(refusal or f"sending to {self.path} failed: {exc}") from None
         return self._read()
+
+    def _pending_refusal(self) -> str | None:
+        """The error a daemon sent before closing the connection, if there is one."""
+        try:
+            self._sock.settimeout(0.5)
+            line = self._reader.readline(MAX_LINE_BYTES)
+            reply = orjson.loads(line) if line else None
+        except (OSError, ValueError):
+            return None
+        if isinstance(reply, dict) and reply.get("ok") is False and reply.get("error"):
+            return str(reply["error"])
+        return None
 
     def watch(self, rate_hz: float) -> Iterator[dict[str, Any]]:
         """Samples streamed by the daemon, as dicts, until it stops or we do."""
@@ -106,6 +123,26 @@ def sparkline(values: list[float]) -> str:
     return "".join(_BARS[round((v - lo) / span * (len(_BARS) - 1))] for v in values)
 
 
+def _limit(value: float | None) -> str:
+    """A rate limit from JSON, where infinity (no limit) arrives as null."""
+    return "none" if value is None else f"{value:g}"
+
+
+def _driver_errors(counts: dict[str, int] | None) -> str:
+    if counts is None:  # a daemon older than the count
+        return "errors      (driver errors not reported by this daemon)"
+    total = sum(counts.values())
+    parts = ", ".join(f"{device} {n}" for device, n in counts.items())
+    return f"errors      {total} driver errors since start ({parts})"
+
+
+def _log_line(log: dict[str, Any]) -> str:
+    where = log["path"] if log["path"] else "no file open (logging is down; retrying)"
+    health = "healthy" if log["healthy"] else f"FAULT: {log['error']}"
+    return (f"log         {where}, {log['samples_written']} samples, {health}"
+            + (f", {log['dropped']} dropped" if log["dropped"] else ""))
+
+
 def format_status(st: dict[str, Any]) -> str:
     s = st.get("sample") or {}
     c, lp, log = st["controller"], st["loop"], st["log"]
@@ -113,24 +150,26 @@ def format_status(st: dict[str, Any]) -> str:
         f"leveler {st['version']} (pid {st['pid']}), up {st['uptime_s'] / 60:.1f} min, "
         f"config {st['config_path']}",
         f"state       {st['state']}" + (f"  ({st['fault_reason']})" if st["fault_reason"] else ""),
+        _driver_errors(st.get("driver_errors")),
     ]
     if s:
         lines += [
             f"sensor      {s['sensor_m'] * 1e9:+.2f} nm   (tilt {st['tilt_rad'] * 1e9:+.2f} nrad)"
             if s.get("sensor_m") is not None else "sensor      no valid reading",
-            f"piezo       {s['applied_v']:.3f} V applied, {s['command_v']:.3f} V commanded"
+            ("piezo       last write failed (voltage held)"
+             if s.get("applied_v") is None else f"piezo       {s['applied_v']:.3f} V applied")
+            + f", {s['command_v']:.3f} V commanded"
             + ("  SATURATED" if s["saturated"] else ""),
         ]
     lines += [
         f"controller  kp {c['kp_v_per_m']:.4g} V/m  ki {c['ki_v_per_m_s']:.4g} V/(m s)  "
         f"kd {c['kd_v_s_per_m']:.4g} V s/m  setpoint {c['setpoint_m']:.4g} m  "
-        f"limits {c['output_min_v']:g}..{c['output_max_v']:g} V  slew {c['slew_v_per_s']:g} V/s",
+        f"limits {c['output_min_v']:g}..{c['output_max_v']:g} V  "
+        f"slew {_limit(c['slew_v_per_s'])} V/s",
         f"loop        {lp['rate_hz']:g} Hz, {lp['cycles']} cycles, period p50/p99/max "
         f"{lp['period_p50_s'] * 1e3:.2f}/{lp['period_p99_s'] * 1e3:.2f}/"
         f"{lp['period_max_s'] * 1e3:.2f} ms, overruns {lp['overruns']}",
-        f"log         {log['path']}, {log['samples_written']} samples, "
-        + ("healthy" if log["healthy"] else f"FAULT: {log['error']}")
-        + (f", {log['dropped']} dropped" if log["dropped"] else ""),
+        _log_line(log),
     ]
     return "\n".join(lines)
 

@@ -115,6 +115,25 @@ def _linger(conn: socket.socket) -> None:
             pass
 
 
+def refuse_if_served(path: Path) -> bool:
+    """Raise ControlError if a daemon answers on `path`; True if a dead one's file is there.
+
+    The daemon asks this before it opens any device: a second `leveler run` on the same
+    config must not touch the actuator the first one is driving, not even to make it safe.
+    """
+    if not (path.exists() or path.is_symlink()):
+        return False
+    probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        probe.connect(str(path))
+    except OSError:
+        return True
+    else:
+        raise ControlError(f"another leveler daemon is listening on {path}")
+    finally:
+        probe.close()
+
+
 class ControlServer:
     """Listens on `path`; serves until close()."""
 
@@ -145,16 +164,8 @@ class ControlServer:
 
     def _bind(self) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True, mode=0o750)
-        if self.path.exists() or self.path.is_symlink():
-            probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-            try:
-                probe.connect(str(self.path))
-            except OSError:
-                self.path.unlink()  # left behind by a daemon that died
-            else:
-                raise ControlError(f"another leveler daemon is listening on {self.path}")
-            finally:
-                probe.close()
+        if refuse_if_served(self.path):
+            self.path.unlink()  # left behind by a daemon that died
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_CLOEXEC)
         old = os.umask(0o117)  # the socket is born 0660: no window with wider access
         try:
@@ -229,8 +240,7 @@ class ControlServer:
                                              "error": f"request longer than {MAX_LINE_BYTES} "
                                                       "bytes; closing the connection"}))
                         return
-                    if not line.strip():
-                        continue
+                    # every line is answered, a blank one too (with an error)
                     if not self._answer(conn, line, peer):
                         return
         except (OSError, TimeoutError):

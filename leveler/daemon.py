@@ -14,6 +14,7 @@ import faulthandler
 import logging
 import os
 import queue
+import re
 import signal
 import sys
 import threading
@@ -28,7 +29,7 @@ from typing import Any
 from leveler import __version__
 from leveler.clock import RealtimeClock
 from leveler.config import ConfigError
-from leveler.control import ControlServer, Peer, resolve_group
+from leveler.control import ControlServer, Peer, refuse_if_served, resolve_group
 from leveler.drivers.base import DriverError, Status
 from leveler.logrotate import RotatingLog
 from leveler.loop import ENGAGED, FAULT, IDLE, MODULATING, Loop
@@ -37,7 +38,8 @@ from leveler.notify import Notifier
 from leveler.persist import set_keys, write_atomic
 from leveler.pid import PID, PIDGains
 from leveler.protocol import ProtocolError, default_socket_path, modulate_args, tune_args
-from leveler.settings import ControllerConfig, load_config
+from leveler.rt import lock_memory, scheduler
+from leveler.settings import ControllerConfig, check_tune_values, load_config
 from leveler.stand import Stand, open_stand
 
 _log = logging.getLogger("leveler")
@@ -68,11 +70,15 @@ class Daemon:
         self._pending_events: deque[tuple[str, str, dict[str, Any]]] = deque()
         self.notifier = Notifier()
         self.started_mono = time.monotonic()
+        # The loop thread's, set as run() starts (status() runs on a client thread).
+        self.memory = "not locked: loop not started"
+        self.scheduler = "loop not started"
         try:
             self.gid = resolve_group(self.cfg.control.group)
         except KeyError as exc:
             raise ConfigError(f"{self.config_path}: {exc.args[0]}") from None
         self.socket_path = Path(self.cfg.control.socket_path or default_socket_path())
+        refuse_if_served(self.socket_path)  # before any device is opened or log created
         self.stand: Stand = open_stand(self.cfg)
         self.stand.connect()
         metadata = {"config": text, "config_path": str(self.config_path.resolve()),
@@ -185,7 +191,8 @@ class Daemon:
                          if s is not None else None),
             "controller": dataclasses.asdict(self.cfg.controller),
             "loop": {"rate_hz": self.cfg.loop.rate_hz, "cycles": self.clock.cycles,
-                     "overruns": self.clock.overruns, **stats},
+                     "overruns": self.clock.overruns, "scheduler": self.scheduler,
+                     "memory": self.memory, **stats},
             "log": {"path": str(self.log.path) if self.log.path else None,
                     "samples_written": self.log.samples_written, "dropped": self.log.dropped,
                     "healthy": self.log.healthy, "error": self.log.last_error},
@@ -289,6 +296,7 @@ class Daemon:
     def _validated(self, values: dict[str, float]) -> ControllerConfig:
         """The controller config with `values` applied, checked as a whole first."""
         try:
+            check_tune_values(self.cfg, values)  # within the sensor's and actuator's ranges
             new = dataclasses.replace(self.cfg.controller, **values)
             new.pid_config()
         except (ValueError, ConfigError) as exc:
@@ -386,6 +394,7 @@ class Daemon:
         # A thread holding the interpreter lock keeps the loop waiting up to one switch
         # interval (5 ms by default) after its deadline: keep that below a period.
         sys.setswitchinterval(min(sys.getswitchinterval(), self.dt / 4))
+        self.memory, self.scheduler = lock_memory(), scheduler()
         print(f"leveler {__version__}: {cfg.sensor.backend} backend at {cfg.loop.rate_hz:g} Hz, "
               f"logging to {self.log.path}, control socket {self.socket_path}", flush=True)
         wd = self.notifier.watchdog_interval_s
@@ -397,7 +406,8 @@ class Daemon:
             self.server.start()
             t = clock.tick()
             loop.emit("start", "daemon started", t, config=str(self.config_path),
-                      socket=str(self.socket_path))
+                      socket=str(self.socket_path), scheduler=self.scheduler,
+                      memory=self.memory)
             loop.cycle(t, clock.wall_ns(t))
             if self.cfg.loop.engage_on_start:
                 loop.engage(t, "engage_on_start")
@@ -437,20 +447,30 @@ class Daemon:
                     line = self.status_line()
                     print(line, flush=True)
                     self.notifier.status(line)
+        except BaseException as exc:  # a bug, not a DriverError: the log says what it was
+            self.stop_reason = self.stop_reason or f"unexpected {type(exc).__name__}: {exc}"
+            raise
         finally:
             self.notifier.stopping()
-            self.stand.actuator.make_safe()
-            reason = self.stop_reason or "finished"
-            if loop.state == ENGAGED:
-                loop.disengage(t, reason)
-            loop.emit("stop", reason, t, overruns=clock.overruns,
-                      sensor_errors=loop.errors["sensor"], actuator_errors=loop.errors["actuator"])
-            self.server.close()
-            self.log.close()
-            self.stand.close()
-            self.notifier.close()
-            for sig, handler in previous.items():
-                signal.signal(sig, handler)
+            safe = self.stand.actuator.make_safe()  # first: nothing below can stop it
+            try:
+                reason = self.stop_reason or "finished"
+                if not safe:
+                    reason += ("; the safe voltage could NOT be set (actuator unreachable): "
+                               "the piezo holds its last voltage")
+                    _log.critical("stopping: %s", reason)
+                if loop.state == ENGAGED:
+                    loop.disengage(t, reason)
+                loop.emit("stop", reason, t, overruns=clock.overruns,
+                          sensor_errors=loop.errors["sensor"],
+                          actuator_errors=loop.errors["actuator"], safe=safe)
+            finally:  # even if the log refused those events: finish it, remove the socket
+                self.server.close()
+                self.log.close()
+                self.stand.close()
+                self.notifier.close()
+                for sig, handler in previous.items():
+                    signal.signal(sig, handler)
         print(f"stopped ({self.stop_reason or 'finished'}): {self.log.samples_written} samples "
               f"in {', '.join(str(p) for p in self.log.files)}", file=sys.stderr, flush=True)
         return 0
@@ -466,4 +486,13 @@ def run_daemon(config_path: str | Path, duration_s: float | None = None) -> int:
     faulthandler.enable()  # a watchdog SIGABRT then leaves every thread's stack in the journal
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format="%(levelname)s %(name)s: %(message)s")
-    return Daemon(config_path, duration_s).run()
+    try:
+        daemon = Daemon(config_path, duration_s)
+    except DriverError as exc:  # at start only: later, faults and reconnects handle it
+        why = re.sub(r";? *retrying in [0-9.]+ s\.?$", "", str(exc))
+        print(f"leveler run: cannot start, a device does not answer: {why}\n"
+              "(exit 1: under systemd the service is started again after RestartSec; by "
+              "hand, check the wiring, or start `leveler emulate` for an emulated stand)",
+              file=sys.stderr, flush=True)
+        return 1
+    return daemon.run()

@@ -42,8 +42,8 @@ class DitheredActuator:
     def close(self) -> None:
         self.inner.close()
 
-    def make_safe(self) -> None:
-        self.inner.make_safe()
+    def make_safe(self) -> bool:
+        return self.inner.make_safe()
 
     def write(self, command_v: float, t_s: float) -> float:
         frac = math.fmod(t_s, self.period_s) / self.period_s

@@ -31,7 +31,7 @@ from queue import SimpleQueue
 from leveler.logreader import LogError
 from leveler.logwriter import LogWriter
 from leveler.records import Event, Sample, Truth
-from leveler.rt import demote_thread
+from leveler.rt import background_thread
 
 _log = logging.getLogger(__name__)
 
@@ -101,12 +101,13 @@ class _Worker:
         self._thread.join()
 
     def _run(self) -> None:
-        demote_thread()  # file I/O must not run at the loop's real-time priority
+        background_thread()  # below the loop; the writers it starts inherit this
         while (job := self._jobs.get()) is not None:
             try:
                 job()
             except Exception:  # a bug here must not silently end all later closes
                 _log.exception("%s: job failed", self._thread.name)
+            del job  # else it keeps the last finished writer (and its index) until the next
 
 
 class RotatingLog:
@@ -188,8 +189,9 @@ class RotatingLog:
 
     @property
     def healthy(self) -> bool:
-        """False from a write error until a new file is open; `last_error` says why (and
-        keeps the most recent error after recovery)."""
+        """False from a write error until a new file is open; `last_error` says why. A new
+        file clears `last_error`: a status that says healthy carries no stale error (the
+        log's `fault` event keeps what happened)."""
         return self._outage is None
 
     @property
@@ -350,6 +352,7 @@ class RotatingLog:
                       log_time_ns)
         self.files.append(new.path)
         self._writer, self._handed, self._outage = new, 0, None
+        self.last_error = None  # what failed before is in `new`'s events, not news now
         self._rotate_at = self._clock() + self._rotate_interval
         self._next_try = -math.inf
 

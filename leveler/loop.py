@@ -51,6 +51,7 @@ class Loop:
         self.fault_reason = ""
         self.seq = 0
         self.held_v = actuator.safe_v
+        self.safe_unconfirmed = False  # in fault: make_safe failed, applied_v is unknown
         self.last: Sample | None = None
         self.wave: SquareWave | None = None  # the tilt modulation while `modulating`
         self._wall_ns = 0
@@ -118,7 +119,8 @@ class Loop:
     def reset(self, t_s: float, reason: str = "requested") -> None:
         """Leave `fault` for `idle`; the actuator stays at its safe voltage until engaged."""
         if self.state == FAULT:
-            self.held_v = self.actuator.safe_v
+            self.held_v = self.actuator.safe_v  # what the next idle cycle writes
+            self.safe_unconfirmed = False
             self.fault_reason = ""
             self._in_a_row = 0
             self._bad_in_a_row = 0
@@ -130,10 +132,15 @@ class Loop:
 
     def _fault(self, t_s: float, reason: str) -> None:
         try:
-            self.actuator.make_safe()
+            self.safe_unconfirmed = not self.actuator.make_safe()
+        except DriverError as exc:  # the protocol says never; a driver that does is heard
+            self.safe_unconfirmed, reason = True, f"{reason} ({exc})"
+        if self.safe_unconfirmed:
+            # The amplifier holds its last voltage; the log must not claim safe_v.
+            reason = (f"{reason}; the safe voltage could NOT be set (actuator unreachable): "
+                      "the piezo holds its last voltage")
+        else:
             self.held_v = self.actuator.safe_v
-        except DriverError as exc:
-            reason = f"{reason}; make_safe failed too: {exc}"
         if self.state != FAULT:
             if self.wave is not None:
                 self.wave = None
@@ -238,7 +245,7 @@ class Loop:
                     command = self.held_v
                 else:
                     command = wave_v
-        applied = command
+        applied = math.nan if self.state == FAULT and self.safe_unconfirmed else command
         if self.state != FAULT:
             try:
                 applied = self.actuator.write(command, t_s)

@@ -2,13 +2,17 @@
 
 Request:  {"v": 1, "verb": "status"} (plus the verb's arguments), one per line.
 Response: {"v": 1, "ok": true, ...} or {"v": 1, "ok": false, "error": "what was wrong"}.
-`watch` answers with one response and then a line per streamed sample.
+Every line gets exactly one response (an empty one and an object that repeats a key are
+errors, not skipped or half read); `watch` answers with one response and then a line per
+streamed sample. JSON has no infinity: `tune` takes the string "inf" for slew_v_per_s (no
+limit, as in the config), and responses carry non-finite numbers as null.
 This module holds what client and server share: the version, the limits, the socket's
 default place and the checks on a request's shape.
 """
 
 from __future__ import annotations
 
+import json
 import math
 import os
 from pathlib import Path
@@ -33,6 +37,11 @@ TUNE_KEYS: dict[str, float | None] = {
     "output_max_v": None,
     "slew_v_per_s": None,
 }
+#: tune arguments that may be infinite (the string "inf" on the wire), as in the config
+TUNE_INF_OK = ("slew_v_per_s",)
+#: the bound on a tune setpoint the request alone can check: a leveling sensor reads
+#: micrometres, so a setpoint of millimetres is a unit slip (1 for 1e-6), not a setting
+SETPOINT_BOUND_M = 1e-3
 
 
 class ProtocolError(ValueError):
@@ -71,12 +80,16 @@ def parse_request(line: bytes) -> dict[str, Any]:
     """Decode and check one request line; raises ProtocolError naming the problem."""
     if len(line) > MAX_LINE_BYTES:
         raise ProtocolError(f"request longer than {MAX_LINE_BYTES} bytes")
+    if not line.strip():
+        raise ProtocolError('empty request: send one JSON object per line, e.g. '
+                            '{"v": 1, "verb": "status"}')
     try:
         req = orjson.loads(line)  # strict JSON: NaN and Infinity are syntax errors here
     except orjson.JSONDecodeError as exc:
         raise ProtocolError(f"not valid JSON: {exc}") from None
     if not isinstance(req, dict):
         raise ProtocolError("request must be a JSON object")
+    _refuse_duplicate_keys(line)
     version = req.get("v", VERSION)
     if type(version) is not int or version != VERSION:  # not 1.0, not true
         raise ProtocolError(f"protocol version {version!r} not supported (this daemon speaks "
@@ -91,6 +104,29 @@ def parse_request(line: bytes) -> dict[str, Any]:
     elif verb == "watch":
         _check_watch(req)
     return req
+
+
+def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    seen: set[str] = set()
+    for key, _ in pairs:
+        if key in seen:
+            raise ProtocolError(f"key {key!r} given twice; which one was meant is not guessed")
+        seen.add(key)
+    return dict(pairs)
+
+
+def _refuse_duplicate_keys(line: bytes) -> None:
+    """orjson (like most parsers) keeps the last of repeated keys, so `{"verb": "stop",
+    "verb": "start"}` would start the loop: a line orjson accepted is read once more, with
+    a hook that sees every key."""
+    try:
+        json.loads(line, object_pairs_hook=_no_duplicates)
+    except ProtocolError:
+        raise
+    except RecursionError:  # within orjson's depth limit but past Python's
+        raise ProtocolError("not valid JSON: nested too deeply") from None
+    except ValueError as exc:  # orjson accepted it, so this should not happen; refuse
+        raise ProtocolError(f"not valid JSON: {exc}") from None
 
 
 def _check_watch(req: dict[str, Any]) -> None:
@@ -115,16 +151,27 @@ def tune_args(req: dict[str, Any]) -> tuple[dict[str, float], bool]:
         if key not in req:
             continue
         value = req[key]
+        if key in TUNE_INF_OK and value == "inf":
+            value = math.inf
+        if value is None:  # what a client's NaN or infinity becomes in JSON
+            raise ProtocolError(f"tune: {key} must be a finite number, got null (NaN or "
+                                "infinity in the client; JSON has neither)")
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise ProtocolError(f"tune: {key} must be a number, got {value!r}")
         value = float(value)
-        if not math.isfinite(value):
-            raise ProtocolError(f"tune: {key} must be finite, got {value!r}")
+        if not math.isfinite(value) and not (key in TUNE_INF_OK and value == math.inf):
+            raise ProtocolError(f"tune: {key} must be finite, got {value!r}"
+                                + (' (or "inf" for no limit)' if key in TUNE_INF_OK else ""))
         if lower is not None and value < lower:
             raise ProtocolError(f"tune: {key} must be >= {lower}, got {value!r}")
         values[key] = value
     if "slew_v_per_s" in values and values["slew_v_per_s"] <= 0:
         raise ProtocolError(f"tune: slew_v_per_s must be > 0, got {values['slew_v_per_s']!r}")
+    if abs(values.get("setpoint_m", 0.0)) > SETPOINT_BOUND_M:
+        raise ProtocolError(
+            f"tune: setpoint_m {values['setpoint_m']:g} m is not a plausible sensor reading: "
+            f"it must lie within +-{SETPOINT_BOUND_M:g} m (the sensor reads micrometres; "
+            "units are SI, so 1 um is 1e-6)")
     persist = req.get("persist", False)
     if not isinstance(persist, bool):
         raise ProtocolError(f"tune: persist must be true or false, got {persist!r}")

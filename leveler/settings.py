@@ -144,12 +144,68 @@ class Config:
         if (self.sensor.backend == "sim") != (self.actuator.backend == "sim"):
             raise ValueError("sensor.backend and actuator.backend: the simulated plant is "
                              "both sensor and actuator; use \"sim\" for both or for neither")
+        if self.actuator.backend == "sim":  # a device table checks its own safe_v
+            pz = self.plant.piezo
+            if not pz.min_v <= self.actuator.safe_v <= pz.max_v:
+                raise ValueError(f"actuator.safe_v: {self.actuator.safe_v} V is outside the "
+                                 f"simulated piezo's range [plant.piezo] min_v..max_v = "
+                                 f"[{pz.min_v}, {pz.max_v}] V")
+
+    def sensor_range_m(self) -> tuple[float, float, str]:
+        """The readings the configured sensor can make [m], and the table that says so."""
+        b = self.sensor.backend
+        if b == "modbus" and self.sensor.modbus is not None:
+            m = self.sensor.modbus
+            ends = (m.counts_to_m(m.counts_min), m.counts_to_m(m.counts_max))
+        elif b == "serial" and self.sensor.serial is not None:
+            ends = (self.sensor.serial.min_m, self.sensor.serial.max_m)
+        elif b == "nidaq" and self.sensor.nidaq is not None:
+            n = self.sensor.nidaq
+            ends = (n.volts_to_m(n.range_min_v), n.volts_to_m(n.range_max_v))
+        else:
+            se = self.plant.sensor
+            ends = ((se.adc_min_v - se.offset_v) / se.gain_v_per_m,
+                    (se.adc_max_v - se.offset_v) / se.gain_v_per_m)
+            b = "plant"
+        return min(ends), max(ends), f"[{b}.sensor]" if b == "plant" else f"[sensor.{b}]"
+
+    def actuator_range_v(self) -> tuple[float, float, str]:
+        """The voltages the configured actuator driver allows, and the table that says so."""
+        b = self.actuator.backend
+        table = getattr(self.actuator, b) if b != "sim" else None
+        if table is not None:
+            return table.min_v, table.max_v, f"[actuator.{b}]"
+        return self.plant.piezo.min_v, self.plant.piezo.max_v, "[plant.piezo]"
+
+
+def check_tune_values(cfg: Config, values: dict[str, float]) -> None:
+    """Plausibility of live controller changes against this config's devices: a setpoint
+    the sensor can read, output limits the actuator has. Only the keys being changed are
+    checked (a running config that predates the check is not refused for its own values).
+    Raises ValueError naming the key, the value and the range."""
+    if "setpoint_m" in values:
+        lo, hi, where = cfg.sensor_range_m()
+        sp = values["setpoint_m"]
+        if not lo < sp < hi:
+            raise ValueError(f"setpoint_m {sp:g} m is outside what the sensor reads, "
+                             f"({lo:g}, {hi:g}) m ({where}); the loop could never reach it")
+    lo, hi, where = cfg.actuator_range_v()
+    for key in ("output_min_v", "output_max_v"):
+        if key in values and not lo <= values[key] <= hi:
+            raise ValueError(f"{key} {values[key]:g} V is outside the actuator's range "
+                             f"[{lo:g}, {hi:g}] V ({where})")
 
 
 def load_config(path: str | Path) -> tuple[Config, str]:
-    """Read and validate a config file; returns it with its text (kept in every log)."""
+    """Read and validate a config file; returns it with its text (kept in every log).
+
+    A file with no table or key at all is refused: it would run the simulated stand on
+    built-in defaults, which is never what an emptied or truncated lab config meant."""
     path = Path(path)
     data = load_toml(path)
+    if not data:
+        raise ConfigError(f"{path}: is empty: no tables or keys (it would run the simulator "
+                          "on built-in defaults); start from config/lab.toml or config/sim.toml")
     try:
         cfg = build(Config, data)
     except ConfigError as exc:

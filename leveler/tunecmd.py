@@ -3,17 +3,35 @@
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 from leveler.client import Client, ClientError
+from leveler.protocol import TUNE_INF_OK
 
 FLAG_KEYS = {"kp": "kp_v_per_m", "ki": "ki_v_per_m_s", "kd": "kd_v_s_per_m",
              "setpoint": "setpoint_m", "min_v": "output_min_v", "max_v": "output_max_v",
              "slew": "slew_v_per_s"}
 
 
+def _checked(flag: str, key: str, value: float) -> float | str:
+    """A flag's value as the request carries it; NaN and infinity are refused here (JSON
+    has neither), except an infinite slew, which means no limit and goes as "inf"."""
+    if key in TUNE_INF_OK and value == math.inf:
+        return "inf"
+    if not math.isfinite(value):
+        extra = " (inf, for no limit, is allowed)" if key in TUNE_INF_OK else ""
+        raise ClientError(f"--{flag.replace('_', '-')}: {value!r} is not a finite "
+                          f"number{extra}")
+    return value
+
+
+def _shown(value: float | None) -> str:
+    return "inf" if value is None else f"{value:g}"  # JSON carries infinity as null
+
+
 def run_tune_command(args: argparse.Namespace) -> int:
-    values = {key: getattr(args, flag) for flag, key in FLAG_KEYS.items()
+    values = {key: _checked(flag, key, getattr(args, flag)) for flag, key in FLAG_KEYS.items()
               if getattr(args, flag) is not None}
     if args.suggest:
         values.update(_suggest(args))
@@ -25,7 +43,7 @@ def run_tune_command(args: argparse.Namespace) -> int:
     with Client(args.socket) as client:
         reply = client.request("tune", persist=args.persist, **values)
     c = reply["controller"]
-    print("applied: " + ", ".join(f"{k} = {c[k]:g}" for k in values)
+    print("applied: " + ", ".join(f"{k} = {_shown(c[k])}" for k in values)
           + ("; written to the config file" if reply["persisted"] else ""))
     return 0
 

@@ -70,8 +70,8 @@ class Tamper:
             raise DriverError("tampered write")
         return float(self.inner.write(command_v, t_s))  # type: ignore[attr-defined]
 
-    def make_safe(self) -> None:
-        self.inner.make_safe()  # type: ignore[attr-defined]
+    def make_safe(self) -> bool:
+        return self.inner.make_safe()  # type: ignore[attr-defined, no-any-return]
 
 
 def _tuned(c: ControllerConfig, op: tuple) -> ControllerConfig:

@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from leveler.cli import build_parser, main
@@ -105,3 +106,72 @@ def test_recover_a_truncated_log(logs: tuple[Path, Path], tmp_path: Path) -> Non
     fixed = read_log(out)
     assert fixed.complete
     assert len(fixed.samples["seq"]) == len(damaged.samples["seq"]) > 1000
+
+
+def _sim_log_with_faults(tmp: Path, name: str, faults: str) -> Path:
+    """A 1 h `leveler sim` log whose sensor fails as `faults` ([[sim.faults]] tables) say:
+    held bad readings, logged as null like a daemon's."""
+    cfg = (REPO / "config" / "sim.toml").read_text()
+    assert "[sim]\nseed = 1\n" in cfg
+    (tmp / f"{name}.toml").write_text(cfg.replace("[sim]\nseed = 1\n",
+                                                  f"[sim]\nseed = 1\n{faults}\n"))
+    out = tmp / f"{name}.mcap"
+    proc = leveler("sim", "--config", str(tmp / f"{name}.toml"), "--duration", "1h",
+                   "--out", str(out), cwd=tmp)
+    assert proc.returncode == 0, proc.stderr
+    return out
+
+
+def test_asd_bridges_a_few_held_bad_readings_and_refuses_long_gaps(tmp_path: Path) -> None:
+    """A daemon log with one glitch (sensor_m null while the voltage was held) is analysed
+    with a note; one whose sensor was out for a minute is refused, saying why."""
+    glitch = _sim_log_with_faults(tmp_path, "glitch", (
+        '[[sim.faults]]\nkind = "nan"\nat_s = 600.0\nduration_s = 0.95\n'
+        '[[sim.faults]]\nkind = "timeout"\nat_s = 1800.0\n'))
+    sensor = read_log(glitch).samples["sensor_m"]
+    bad = int(np.count_nonzero(~np.isfinite(sensor)))
+    assert bad == 11  # 10 NaN readings and one timeout
+    proc = leveler("asd", str(glitch), "--json", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr == (f"leveler asd: note: {glitch}: bridged 11 non-finite 'sensor_m' "
+                           f"samples (0.031% of {len(sensor)}) in 2 gaps, the longest 1 s, by "
+                           "linear interpolation (held bad readings or driver errors)\n")
+    spec = json.loads(proc.stdout)[str(glitch)]
+    assert all(np.isfinite(spec["asd"])) and spec["freq_hz"][0] < 1e-3
+
+    outage = _sim_log_with_faults(tmp_path, "outage", (
+        '[[sim.faults]]\nkind = "nan"\nat_s = 600.0\nduration_s = 60.0\n'))
+    proc = leveler("asd", str(outage), cwd=tmp_path)
+    assert proc.returncode == 2
+    (line,) = proc.stderr.splitlines()
+    assert line.startswith(f"leveler asd: error: {outage}: 600 non-finite values in "
+                           "'sensor_m' (sensor faults?) in 1 gaps, 1.67% of the record, the "
+                           "longest 60 s; asd bridges gaps only up to 1% of the record and "
+                           "10 s each: cut the log around them first"), line
+
+
+@pytest.mark.parametrize(
+    ("x", "fs", "samples", "gaps", "trimmed", "refused"),
+    [
+        (np.r_[np.ones(100), np.nan, np.ones(99)], 1.0, 1, 1, 0, None),
+        (np.r_[np.nan, np.nan, np.ones(200), np.nan], 1.0, 0, 0, 3, None),
+        (np.r_[np.ones(100), [np.nan] * 3, np.ones(97)], 1.0, None, None, None, "1.50% of"),
+        (np.r_[np.ones(5000), [np.nan] * 11, np.ones(5000)], 1.0, None, None, None,
+         "the longest 11 s"),
+        (np.r_[np.ones(5000), [np.nan] * 11, np.ones(5000)], 2.0, 11, 1, 0, None),
+        (np.full(20, np.nan), 1.0, None, None, None, "every value"),
+    ],
+)
+def test_bridge_gaps_bounds(x: np.ndarray, fs: float, samples: int | None, gaps: int | None,
+                            trimmed: int | None, refused: str | None) -> None:
+    from leveler.asdcmd import bridge_gaps
+    from leveler.logreader import LogError
+
+    if refused is not None:
+        with pytest.raises(LogError, match=re.escape(refused)):
+            bridge_gaps(x, fs, "sensor_m", "a.mcap")
+        return
+    out, b = bridge_gaps(x, fs, "sensor_m", "a.mcap")
+    assert (b.samples, b.gaps, b.trimmed) == (samples, gaps, trimmed)
+    assert np.all(np.isfinite(out)) and len(out) == len(x) - trimmed
+    np.testing.assert_allclose(out, 1.0)  # a straight line between equal neighbours

@@ -27,9 +27,58 @@ def test_shipped_sim_config_loads_and_matches_the_paper() -> None:
     assert cfg.sensor.backend == "sim"
 
 
-def test_empty_config_takes_the_defaults(tmp_path: Path) -> None:
-    cfg, _ = load_config(write(tmp_path, ""))
+@pytest.mark.parametrize("text", ["", "\n\n", "   \n\t\n", "# the lab's config\n# (cut)\n"])
+def test_an_empty_config_is_refused_not_run_on_defaults(tmp_path: Path, text: str) -> None:
+    """An emptied or truncated file would otherwise run the simulator on built-in
+    defaults, for `run` and for a SIGHUP reload alike (both go through load_config)."""
+    path = write(tmp_path, text)
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    assert str(err.value).startswith(f"{path}: is empty: no tables or keys")
+
+
+def test_one_empty_table_is_a_config_and_takes_the_defaults(tmp_path: Path) -> None:
+    cfg, _ = load_config(write(tmp_path, "[loop]\n"))
     assert cfg == Config()
+
+
+def test_the_simulated_actuators_safe_v_must_be_in_the_piezo_range(tmp_path: Path) -> None:
+    """Like [actuator.modbus]/[actuator.serial]: a config error, not a driver traceback."""
+    path = write(tmp_path, '[actuator]\nbackend = "sim"\nsafe_v = 200.0\n')
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    assert str(err.value) == (f"{path}: actuator.safe_v: 200.0 V is outside the simulated "
+                              "piezo's range [plant.piezo] min_v..max_v = [0.0, 150.0] V")
+    cfg, _ = load_config(write(tmp_path, "[actuator]\nsafe_v = 20.0\n[plant.piezo]\n"
+                               "min_v = 10.0\nref_v = 20.0\n"))
+    assert cfg.actuator.safe_v == 20.0
+
+
+@pytest.mark.parametrize(
+    ("base", "values", "needle"),
+    [
+        ("sim.toml", {"setpoint_m": 1.0}, "setpoint_m 1 m is outside what the sensor reads, "
+                                          "(-5e-05, 5e-05) m ([plant.sensor])"),
+        ("lab-modbus.toml", {"setpoint_m": -6e-5}, "([sensor.modbus])"),
+        ("lab-serial.toml", {"setpoint_m": 5e-5}, "([sensor.serial])"),
+        ("lab-nidaq.toml", {"setpoint_m": 1e-4}, "([sensor.nidaq])"),
+        ("sim.toml", {"output_max_v": 1e6}, "output_max_v 1e+06 V is outside the actuator's "
+                                            "range [0, 150] V ([plant.piezo])"),
+        ("lab-modbus.toml", {"output_min_v": -1.0}, "([actuator.modbus])"),
+        ("lab-serial.toml", {"output_max_v": 151.0}, "([actuator.serial])"),
+        ("lab-nidaq.toml", {"output_min_v": -5.0}, "([actuator.nidaq])"),
+    ],
+)
+def test_tune_values_are_checked_against_the_devices(base: str, values: dict[str, float],
+                                                     needle: str) -> None:
+    from leveler.settings import check_tune_values
+
+    cfg, _ = load_config(REPO / "config" / base)
+    with pytest.raises(ValueError) as err:
+        check_tune_values(cfg, values)
+    assert needle in str(err.value)
+    check_tune_values(cfg, {"setpoint_m": 2e-6, "output_min_v": 10.0, "output_max_v": 140.0,
+                            "kp_v_per_m": 1e30})
 
 
 @pytest.mark.parametrize(

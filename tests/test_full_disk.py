@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from leveler.client import Client
+from leveler.client import Client, format_status
 from leveler.logreader import read_log
 
 LOSS = re.compile(r"log write failed: \[Errno 28\] No space left on device; (\d+) samples lost "
@@ -84,6 +84,9 @@ def test_full_disk_is_a_fault_event_and_control_continues(
     full = wait_status(d.socket, lambda st: not st["log"]["healthy"], "the disk to fill")
     assert "No space left on device" in full["log"]["error"]
     assert full["log"]["path"] is None  # no file while logging is down
+    text = format_status(full).splitlines()[-1]
+    assert text.startswith("log         no file open (logging is down; retrying), "), text
+    assert "FAULT: [Errno 28] No space left on device" in text
     # Several retry intervals on the full disk: the loop goes on, closed, cycle after cycle.
     seen = [full]
     while seen[-1]["uptime_s"] < full["uptime_s"] + 4 * RETRY_S:
@@ -101,6 +104,9 @@ def test_full_disk_is_a_fault_event_and_control_continues(
     filler.unlink()
     resumed = wait_status(d.socket, lambda st: st["log"]["healthy"], "logging to resume")
     assert resumed["state"] == "engaged"
+    assert resumed["log"]["error"] is None  # no stale error beside healthy: true
+    assert format_status(resumed).splitlines()[-1].startswith(
+        f"log         {resumed['log']['path']}, ")
     time.sleep(1.0)
     d.proc.send_signal(signal.SIGTERM)
     out, err = d.proc.communicate(timeout=20)

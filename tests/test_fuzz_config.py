@@ -270,8 +270,11 @@ def test_damaged_toml_is_named_by_file_and_line(workdir: Path, base: str, cut: i
 @pytest.mark.parametrize(
     ("content", "needle"),
     [
-        (b"", None),
-        (b"# only a comment\n\n   \n", None),
+        (b"", "is empty: no tables or keys"),
+        (b"# only a comment\n\n   \n", "is empty: no tables or keys"),
+        (b"[loop]\n", None),
+        (b'[actuator]\nsafe_v = 200.0\n', "actuator.safe_v: 200.0 V is outside the simulated "
+                                          "piezo's range"),
         (b"\x00\x01\x02", "invalid TOML"),
         (b"[loop]\nrate_hz = 10.0  # \xff\xfe\n", "invalid TOML: not UTF-8"),
         (b"[loop]\nrate_hz = 1" + b"0" * 400 + b"\n", "loop.rate_hz: must be finite"),
@@ -306,12 +309,14 @@ def test_a_directory_or_unreadable_path_is_a_config_error(tmp_path: Path) -> Non
 
 DAEMON_CASES = [  # (text in config/sim.toml, its replacement, start of the error after the file)
     ("rate_hz = 10.0", 'rate_hz = "fast"', "loop.rate_hz: expected a number"),
-    ("ki_v_per_m_s = 7.0e5", "ki_v_per_m_s = nan", "controller.ki_v_per_m_s: must be finite"),
+    ("setpoint_m = 0.0", "setpoint_m = nan", "controller.setpoint_m: must be finite"),
     ("slew_v_per_s = 10.0", "slew_v_per_s = -10.0", "controller.slew_v_per_s: must be > 0"),
     ("mass_kg = 0.185", "mass_g = 185.0", "plant.pendulum.mass_g: unknown key"),
     ("[sim]\n", "[sim]\nfrobnicate = 1\n", "sim.frobnicate: unknown key"),
     ("[loop]\n", "[loop\n", "invalid TOML"),
     ("seed = 1", "seed = 1  # \udcff", "invalid TOML: not UTF-8"),
+    ("safe_v = 75.0", "safe_v = 200.0", "actuator.safe_v: 200.0 V is outside the simulated "
+                                        "piezo's range"),
 ]
 
 

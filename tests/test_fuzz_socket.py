@@ -504,7 +504,9 @@ def test_requests_are_refused_or_exactly_valid(req: dict[str, object]) -> None:
         if ok["verb"] == "tune":
             values, persist = tune_args(ok)
             assert values and isinstance(persist, bool)
-            assert all(isinstance(v, float) and math.isfinite(v) for v in values.values())
+            assert all(isinstance(v, float) and (math.isfinite(v) or (
+                k == "slew_v_per_s" and v == math.inf)) for k, v in values.items())
+            assert abs(values.get("setpoint_m", 0.0)) <= 1e-3
         elif ok["verb"] == "modulate":
             amplitude, period, cycles, force = modulate_args(ok)
             assert amplitude > 0 and period > 0 and 1 <= cycles <= 10_000
@@ -540,12 +542,15 @@ def test_any_bytes_are_a_request_or_a_protocol_error(line: bytes) -> None:
         (b'{"v":1.0,"verb":"stop"}', "protocol version 1.0 not supported"),
         (b'{"v":1,"verb":"watch","rate_hz":0}', "rate_hz must be a number in (0, 1000]"),
         (b'{"v":1,"verb":"watch","rate":5}', "watch: unknown key 'rate'"),
+        (b"\r\n", "empty request"),
+        (b'{"v":1,"verb":"stop","verb":"start"}', "key 'verb' given twice"),
     ],
 )
 def test_requests_with_what_the_verb_does_not_take_are_refused(line: bytes,
                                                                needle: str) -> None:
-    """Before these were refused, `stop` with any extra key stopped the loop, and a watch
-    at a bad rate was first promised (ok, watching) and then refused."""
+    """Before these were refused, `stop` with any extra key stopped the loop, a watch at a
+    bad rate was first promised (ok, watching) and then refused, a blank line got no answer
+    at all and a repeated verb acted on the last one."""
     with pytest.raises(ProtocolError) as err:
         parse_request(line)
     assert needle in str(err.value)

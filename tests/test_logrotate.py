@@ -187,6 +187,7 @@ def test_no_directory_at_start_is_a_fault_and_logging_resumes(tmp_path: Path) ->
                       on_fault=faults.append)
     assert not log.healthy and log.path is None and log.files == []
     assert len(faults) == 1 and "cannot start logging" in faults[0]
+    assert log.last_error and "Errno" in log.last_error
     for seq in range(10):
         clock.t = seq * 0.1
         log.sample(make_sample(seq, rng), T0_NS + seq * 1_000_000)
@@ -196,6 +197,7 @@ def test_no_directory_at_start_is_a_fault_and_logging_resumes(tmp_path: Path) ->
     clock.t = 5.0
     log.sample(make_sample(10, rng), T0_NS + 10_000_000)  # the retry is due: requested
     wait_for(lambda: log.healthy, "the retry")
+    assert log.last_error is None  # healthy again: no stale error beside it (`status`)
     log.sample(make_sample(11, rng), T0_NS + 11_000_000)
     log.close()
     assert len(faults) == 1

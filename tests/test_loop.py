@@ -172,8 +172,34 @@ class GlitchyActuator:
             raise DriverError(f"exception reply to write #{self.n}")
         return float(self.inner.write(command_v, t_s))
 
-    def make_safe(self) -> None:
-        self.inner.make_safe()
+    def make_safe(self) -> bool:
+        return self.inner.make_safe()
+
+
+class UnreachableActuator(GlitchyActuator):
+    """The amplifier is gone: every write and every make_safe fails (fresh-eyes run)."""
+
+    def write(self, command_v: float, t_s: float) -> float:
+        raise DriverError("cannot connect")
+
+    def make_safe(self) -> bool:
+        return False
+
+
+def test_a_fault_whose_safe_voltage_cannot_be_set_says_so_and_claims_nothing() -> None:
+    loop, mem, clock = make_loop()
+    run(loop, clock, 5)
+    loop.engage(0.5)
+    run(loop, clock, 5)
+    loop.actuator = UnreachableActuator(loop.actuator, set())  # type: ignore[assignment]
+    run(loop, clock, 5)
+    assert loop.state == FAULT
+    fault = next(e for e in mem.events if e.detail.get("new") == FAULT)
+    assert "could NOT be set" in fault.reason
+    in_fault = [s for s in mem.samples if s.state == FAULT]
+    assert in_fault and all(math.isnan(s.applied_v) for s in in_fault)
+    loop.reset(2.0, "reconnected")
+    assert loop.held_v == loop.actuator.safe_v and not loop.safe_unconfirmed
 
 
 def test_isolated_driver_errors_hold_the_voltage_are_counted_and_logged_sparingly() -> None:

@@ -236,17 +236,17 @@ def test_backoff_doubles_up_to_the_maximum_and_never_blocks() -> None:
     assert waits == [0.5, 1.0, 2.0, 2.0, 2.0]
 
 
-def test_make_safe_on_a_dead_server_does_not_raise() -> None:
+def test_make_safe_on_a_dead_server_does_not_raise_and_says_it_failed() -> None:
     for rig in _rig():
         actuator = rig.actuator()
         actuator.write(100.0, 0.0)
         actuator.write(100.0, 1.0)
-        actuator.make_safe()
+        assert actuator.make_safe() is True
         assert rig.emu.received_v[-1] == pytest.approx(actuator.safe_v, abs=0.04)
         rig.emu.close()
         t0 = time.monotonic()
-        actuator.make_safe()
-        actuator.make_safe()  # also during the backoff wait: one more real attempt
+        assert actuator.make_safe() is False
+        assert actuator.make_safe() is False  # also during the backoff wait: a real attempt
         assert time.monotonic() - t0 < 1.0
         with pytest.raises(DriverError):
             actuator.write(75.0, 2.0)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import pytest
@@ -43,6 +44,12 @@ def test_bad_requests_are_named(line: bytes, needle: str) -> None:
         ({}, "nothing to change"),
         ({"kp_v_per_m": 1.0, "persist": "yes"}, "persist must be true or false"),
         ({"setpoint_m": 1e400}, "must be finite"),
+        ({"kp_v_per_m": None}, "kp_v_per_m must be a finite number, got null"),
+        ({"slew_v_per_s": "inf", "kp_v_per_m": "inf"}, "kp_v_per_m must be a number"),
+        ({"slew_v_per_s": "Infinity"}, "slew_v_per_s must be a number"),
+        ({"slew_v_per_s": -1e400}, "slew_v_per_s must be finite"),
+        ({"setpoint_m": 1.0}, "setpoint_m 1 m is not a plausible sensor reading"),
+        ({"setpoint_m": -2e-3}, r"within \+-0.001 m"),
     ],
 )
 def test_bad_tune_arguments_are_named(req: dict[str, object], needle: str) -> None:
@@ -54,6 +61,32 @@ def test_good_tune() -> None:
     values, persist = tune_args({"verb": "tune", "kp_v_per_m": 2, "setpoint_m": -1e-8,
                                  "persist": True})
     assert values == {"kp_v_per_m": 2.0, "setpoint_m": -1e-8} and persist
+
+
+def test_an_infinite_slew_is_no_limit_as_in_the_config() -> None:
+    """docs/configuration.md allows slew_v_per_s = inf; JSON cannot carry it, so the
+    request says "inf"."""
+    assert tune_args({"verb": "tune", "slew_v_per_s": "inf"})[0] == {"slew_v_per_s": math.inf}
+    assert tune_args({"verb": "tune", "slew_v_per_s": math.inf})[0] == {
+        "slew_v_per_s": math.inf}
+
+
+@pytest.mark.parametrize("line", [b"", b"\n", b"\r\n", b"  \t\r\n"])
+def test_an_empty_line_is_a_request_that_gets_an_error(line: bytes) -> None:
+    with pytest.raises(ProtocolError, match="empty request"):
+        parse_request(line)
+
+
+@pytest.mark.parametrize(
+    "line",
+    [b'{"v":1,"verb":"stop","verb":"start"}', b'{"v":1,"verb":"start","verb":"stop"}',
+     b'{"v":1,"v":1,"verb":"status"}',
+     b'{"v":1,"verb":"tune","kp_v_per_m":1.0,"kp_v_per_m":2.0}',
+     b'{"v":1,"verb":"status","x":{"a":1,"a":2}}'],
+)
+def test_a_repeated_key_is_refused_not_the_last_one_taken(line: bytes) -> None:
+    with pytest.raises(ProtocolError, match="given twice"):
+        parse_request(line)
 
 
 def test_socket_places() -> None:

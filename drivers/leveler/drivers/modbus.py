@@ -230,13 +230,15 @@ class ModbusActuator:
             self._last_t_s = t_s
         return cfg.counts_to_piezo_v(counts)
 
-    def make_safe(self) -> None:
+    def make_safe(self) -> bool:
         """One attempt at safe_v, even during a reconnect wait; logs instead of raising."""
         cfg = self.cfg
         try:
             self._send(self._quantize(cfg.safe_v, cfg.min_v, cfg.max_v), force=True)
         except Exception as exc:  # the loop calls this while already failing: never raise
             log.error("%s: make_safe could not set %.3f V: %s", cfg.where, cfg.safe_v, exc)
+            return False
+        return True
 
     def close(self) -> None:
         self._link.close()

@@ -158,7 +158,7 @@ class NidaqActuator:
             self._last_t_s = t_s
         return piezo_v
 
-    def make_safe(self) -> None:
+    def make_safe(self) -> bool:
         """One attempt at safe_v at once (opening the AO task if there is none); logs
         instead of raising, since the loop calls it while already failing."""
         cfg = self.cfg
@@ -168,6 +168,8 @@ class NidaqActuator:
             self._send(cfg.safe_v, cfg.ao_v(cfg.safe_v))
         except Exception as exc:  # the last line of defence must not raise
             log.error("%s: make_safe could not set %.3f V: %s", self.where, cfg.safe_v, exc)
+            return False
+        return True
 
     def close(self) -> None:
         task, self._task = self._task, None

@@ -258,7 +258,7 @@ class SerialPiezo:
         self.commands.set_v(self._link, cfg.axis, volts)
         return self._last_v
 
-    def make_safe(self) -> None:
+    def make_safe(self) -> bool:
         """Set safe_v at once (the amplifier's output still slews); reopen the port once if
         that fails. Never raises: it runs when something has already gone wrong."""
         volts = f"{self.cfg.safe_v:.3f}"
@@ -271,9 +271,10 @@ class SerialPiezo:
                 log.error("make_safe attempt %d: %s", attempt, exc)
                 continue
             self._last_v, self._last_t_s = float(volts), None
-            return
+            return True
         log.critical("%s on %s: could not set safe voltage %s V", self._link.device,
                      self.cfg.port, volts)
+        return False
 
     def close(self) -> None:
         self._link.close()

@@ -128,8 +128,9 @@ class SimulatedStand:
             raise DriverError("injected write failure: the piezo amplifier refused the command")
         return self.plant.command(command_v)
 
-    def make_safe(self) -> None:
+    def make_safe(self) -> bool:
         self.plant.command(self._safe_v)
+        return True
 
     def truth(self, seq: int, t_s: float) -> Truth:
         return self.plant.truth(seq, t_s)
