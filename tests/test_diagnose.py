@@ -243,6 +243,7 @@ def test_imported_quiet_loop_without_temperature(tmp_path: Path,
     assert found[0].peak_to_peak_rad == pytest.approx(2e-7, rel=0.1)  # type: ignore[attr-defined]
 
 
+@pytest.mark.slow  # 15 s; the quiet import case stays in make test
 def test_imported_modulated_loop_without_temperature(tmp_path: Path,
                                                      capsys: pytest.CaptureFixture[str]) -> None:
     found = _imported(tmp_path, ActuatorDelay(delay_s=0.5), capsys, **_SQUARE)
