@@ -232,9 +232,14 @@ class Loop:
         saturated = False
         setpoint = pid.config.setpoint_m
         if self.state == ENGAGED and reading.status == Status.OK:
-            out = pid.update(reading.value_m, self.dt_s)
-            p, i, d, saturated = out.p_v, out.i_v, out.d_v, out.saturated
-            setpoint, command = out.setpoint_m, out.command_v
+            try:
+                out = pid.update(reading.value_m, self.dt_s)
+            except OverflowError as exc:  # an absurd reading or gain: stop, do not guess
+                self._fault(t_s, f"controller fault: {exc}")
+                command = self.held_v
+            else:
+                p, i, d, saturated = out.p_v, out.i_v, out.d_v, out.saturated
+                setpoint, command = out.setpoint_m, out.command_v
         else:
             command = self.held_v
             if self.state == MODULATING:

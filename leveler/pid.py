@@ -191,6 +191,7 @@ class PID:
 
         Raises ValueError for a non-positive or non-finite ``dt_s`` or a non-finite
         measurement: the caller decides what a bad reading means, not the controller.
+        Raises OverflowError, changing nothing, if the arithmetic leaves the floats.
         """
         if not 0.0 < dt_s < _INF:
             raise ValueError(f"dt_s must be finite and > 0, got {dt_s!r}")
@@ -243,7 +244,13 @@ class PID:
         delta = self._ki * error * dt_s + (cmd - u) * k_track
         if (delta > 0.0 and cmd >= hi) or (delta < 0.0 and cmd <= lo):
             delta = 0.0  # freeze: never integrate further into the rail we sit on
-        self._i = i + delta
+        i_next = i + delta
+        if not -_INF < i_next + cmd < _INF:
+            # Absurd inputs (a 1e300 reading times a large gain) overflow to inf - inf = NaN;
+            # refuse before any state changes, so a NaN never reaches the actuator.
+            raise OverflowError(f"PID arithmetic overflowed (measurement {measurement_m!r} m, "
+                                f"p {p!r} V, i {i!r} V, d {d!r} V)")
+        self._i = i_next
 
         self._out = cmd
         self._u = u

@@ -13,7 +13,7 @@ from test_backend_parity import lock_in_amplitude
 from leveler.clock import VirtualClock
 from leveler.drivers.base import Block, DriverError, Reading
 from leveler.loop import ENGAGED, FAULT, IDLE, Loop
-from leveler.pid import PID
+from leveler.pid import PID, PIDGains
 from leveler.records import Event, Sample, Truth
 from leveler.settings import Config
 from leveler.stand import open_stand
@@ -301,3 +301,35 @@ def test_block_reads_averaged_by_the_loop_resolve_below_one_adc_count(
         assert len(np.unique(y)) > 100
         assert a_read == pytest.approx(a_true, rel=0.1)
         assert np.std(y - truth_m) < 0.1 * lsb_m
+
+
+class OnceSensor:
+    """The real simulated sensor, except one listed reading (1-based) reports `value_m`, OK."""
+
+    def __init__(self, inner, n: int, value_m: float) -> None:  # type: ignore[no-untyped-def]
+        self.inner, self.at, self.value_m, self.n = inner, n, value_m, 0
+
+    def read(self, t_s: float) -> Reading:
+        self.n += 1
+        r = self.inner.read(t_s)
+        return replace(r, value_m=self.value_m) if self.n == self.at else r
+
+
+def test_controller_overflow_faults_safe_never_a_nan_command() -> None:
+    """Hypothesis found this one: a finite but absurd OK reading (1e300) while idle, huge
+    gains, engage: the PID's arithmetic overflowed and a NaN command reached the plant."""
+    loop, mem, clock = make_loop()
+    loop.sensor = OnceSensor(loop.sensor, 2, 1e300)
+    run(loop, clock, 2)
+    loop.pid.set_gains(PIDGains(1e9, 0.0, 1e6))  # 1e9 x 1e300 is no float
+    loop.engage(0.2)
+    run(loop, clock, 5)
+    assert loop.state == FAULT and "controller fault" in loop.fault_reason
+    assert loop.actuator.plant.v_target == loop.actuator.safe_v
+    assert all(math.isfinite(s.command_v) for s in mem.samples)
+
+
+def test_simulated_actuator_refuses_a_nan_command() -> None:
+    loop, _, _ = make_loop()
+    with pytest.raises(DriverError, match="NaN"):
+        loop.actuator.write(math.nan, 0.1)

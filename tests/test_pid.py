@@ -443,3 +443,16 @@ def test_bad_input_is_rejected_without_changing_state(
         call(pid)
     assert pid.config == config
     assert run(pid) == run(reference)
+
+
+def test_overflowing_arithmetic_raises_without_changing_state() -> None:
+    """Hypothesis found this via the loop: a 1e300 reading, kp 1.8e8 and kd 1e6 made
+    inf - inf = NaN in the integral, and the next command was NaN."""
+    gains = PIDGains(1.78e8, 0.0, 1e6)
+    pid = PID(PIDConfig(gains, 0.0, 150.0, slew_v_per_s=100.0), initial_output_v=75.0)
+    pid.engage(1e300, 75.0)
+    with pytest.raises(OverflowError, match="overflowed"):
+        pid.update(1e-6, 0.1)
+    assert pid.output_v == 75.0
+    pid.engage(1e-6, 75.0)  # a sane measurement re-seeds it: finite commands again
+    assert math.isfinite(pid.update(1.1e-6, 0.1).command_v)

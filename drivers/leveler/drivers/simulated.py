@@ -126,6 +126,8 @@ class SimulatedStand:
             raise DriverError("injected disconnect: the piezo amplifier does not answer")
         if self._fault("write_fail", t_s):
             raise DriverError("injected write failure: the piezo amplifier refused the command")
+        if math.isnan(command_v):  # as the real drivers do: an upstream bug is not hidden
+            raise DriverError(f"refusing command {command_v} V (NaN)")
         return self.plant.command(command_v)
 
     def make_safe(self) -> bool:
