@@ -26,6 +26,13 @@ test: $(STAMP) device-deps
 test-slow: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow
 
+# The property tests with fresh random examples (make test draws the same ones every run).
+# Repeat it to hunt; a failure prints the @reproduce_failure line that replays it.
+.PHONY: test-explore
+test-explore: $(STAMP)
+	HYPOTHESIS_PROFILE=explore $(BIN)/python -m pytest -q -m "not slow and not systemd" \
+	  $$(grep -l '^from hypothesis' tests/*.py)
+
 # The bench's extra dependency (simple-pid, the PID baseline), its own stamp.
 BENCH_STAMP := $(VENV)/.bench-installed
 $(BENCH_STAMP): $(STAMP) pyproject.toml

@@ -14,8 +14,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
+from hypothesis import settings
 
 REPO = Path(__file__).resolve().parents[1]
+
+# `make test` draws the same Hypothesis examples every run, so CI passes or fails on the code
+# alone; `make test-explore` draws new ones (HYPOTHESIS_PROFILE=explore) to hunt for bugs.
+settings.register_profile("repeatable", derandomize=True, database=None)
+settings.register_profile("explore", derandomize=False)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "repeatable"))
 
 
 @dataclass
