@@ -45,6 +45,7 @@ from leveler.stand import Stand, open_stand
 _log = logging.getLogger("leveler")
 WALL_STEP_REPORT_S = 1.0  # smaller corrections (NTP slewing, jitter) are not news
 CALL_TIMEOUT_S = 2.0
+STALL_AFTER_S = 1.0  # no cycle for this long (or 10 periods, if longer): `status` says stalled
 
 
 class _Call:
@@ -70,6 +71,7 @@ class Daemon:
         self._pending_events: deque[tuple[str, str, dict[str, Any]]] = deque()
         self.notifier = Notifier()
         self.started_mono = time.monotonic()
+        self.last_cycle_mono = self.started_mono  # the loop thread's last completed cycle
         # The loop thread's, set as run() starts (status() runs on a client thread).
         self.memory = "not locked: loop not started"
         self.scheduler = "loop not started"
@@ -173,9 +175,12 @@ class Daemon:
             time.sleep(period)
 
     def status(self) -> dict[str, Any]:
+        """Served from the control thread, so it answers while the loop hangs in a device
+        call: the age of the last cycle tells a stalled loop from a healthy one."""
         s = self.loop.last
         pend = self.cfg.plant.pendulum
         stats = self.clock.stats()
+        age_s = time.monotonic() - self.last_cycle_mono
         return {
             "version": __version__,
             "pid": os.getpid(),
@@ -192,7 +197,8 @@ class Daemon:
             "controller": dataclasses.asdict(self.cfg.controller),
             "loop": {"rate_hz": self.cfg.loop.rate_hz, "cycles": self.clock.cycles,
                      "overruns": self.clock.overruns, "scheduler": self.scheduler,
-                     "memory": self.memory, **stats},
+                     "memory": self.memory, "last_cycle_age_s": round(age_s, 3),
+                     "stalled": age_s > max(STALL_AFTER_S, 10 * self.dt), **stats},
             "log": {"path": str(self.log.path) if self.log.path else None,
                     "samples_written": self.log.samples_written, "dropped": self.log.dropped,
                     "healthy": self.log.healthy, "error": self.log.last_error},
@@ -417,7 +423,7 @@ class Daemon:
                 if self._reload_requested:
                     self._reload(t)
                 s = loop.cycle(t, clock.wall_ns(t))
-                now = time.monotonic()
+                now = self.last_cycle_mono = time.monotonic()
                 if loop.state == FAULT:
                     self._reengage_after_wave = False  # a procedure that faulted stays open
                     self._maybe_reconnect(t, now)
@@ -486,6 +492,9 @@ def run_daemon(config_path: str | Path, duration_s: float | None = None) -> int:
     faulthandler.enable()  # a watchdog SIGABRT then leaves every thread's stack in the journal
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format="%(levelname)s %(name)s: %(message)s")
+    # The Modbus driver reports every failure itself (driver_error events, `status`); the
+    # library's own ERROR lines and frame dumps would repeat each one in the journal.
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     try:
         daemon = Daemon(config_path, duration_s)
     except DriverError as exc:  # at start only: later, faults and reconnects handle it

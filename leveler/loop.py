@@ -124,6 +124,10 @@ class Loop:
             self.fault_reason = ""
             self._in_a_row = 0
             self._bad_in_a_row = 0
+            # The stand may have moved during a long fault: the first reading after it is
+            # the new reference, not a spike against the last one before it.
+            self._last_good_m = self._last_value_m = math.nan
+            self._spikes_in_a_row = self._same_in_a_row = 0
             self._transition(IDLE, reason, t_s)
 
     def _transition(self, new: str, reason: str, t_s: float) -> None:

@@ -178,11 +178,30 @@ class Config:
         return self.plant.piezo.min_v, self.plant.piezo.max_v, "[plant.piezo]"
 
 
+PLAUSIBLE_ERROR_M = 1e-12  # a picometre: far below the noise of any displacement sensor
+
+
+def gain_limits(cfg: Config) -> dict[str, float]:
+    """The largest plausible gain of each kind: one that sweeps the actuator's whole range
+    for a 1 pm error within one sample. Anything larger is a typo in the exponent, and it
+    would overflow the controller's arithmetic on the first large error."""
+    lo, hi, _ = cfg.actuator_range_v()
+    span, dt = hi - lo, 1.0 / cfg.loop.rate_hz
+    return {"kp_v_per_m": span / PLAUSIBLE_ERROR_M,
+            "ki_v_per_m_s": span / (PLAUSIBLE_ERROR_M * dt),
+            "kd_v_s_per_m": span * dt / PLAUSIBLE_ERROR_M}
+
+
 def check_tune_values(cfg: Config, values: dict[str, float]) -> None:
     """Plausibility of live controller changes against this config's devices: a setpoint
-    the sensor can read, output limits the actuator has. Only the keys being changed are
-    checked (a running config that predates the check is not refused for its own values).
-    Raises ValueError naming the key, the value and the range."""
+    the sensor can read, output limits the actuator has, gains below `gain_limits`. Only
+    the keys being changed are checked (a running config that predates the check is not
+    refused for its own values). Raises ValueError naming the key, the value and the range."""
+    for key, limit in gain_limits(cfg).items():
+        if key in values and values[key] > limit:
+            raise ValueError(f"{key} {values[key]:g} is implausible: above {limit:.3g}, a 1 pm "
+                             "error would sweep the actuator's whole range within one "
+                             f"sample at {cfg.loop.rate_hz:g} Hz (a typo in the exponent?)")
     if "setpoint_m" in values:
         lo, hi, where = cfg.sensor_range_m()
         sp = values["setpoint_m"]
@@ -210,4 +229,8 @@ def load_config(path: str | Path) -> tuple[Config, str]:
         cfg = build(Config, data)
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None
+    try:
+        check_tune_values(cfg, {k: getattr(cfg.controller, k) for k in gain_limits(cfg)})
+    except ValueError as exc:
+        raise ConfigError(f"{path}: controller.{exc}") from None
     return cfg, path.read_text()

@@ -67,6 +67,9 @@ def test_the_simulated_actuators_safe_v_must_be_in_the_piezo_range(tmp_path: Pat
         ("lab-modbus.toml", {"output_min_v": -1.0}, "([actuator.modbus])"),
         ("lab-serial.toml", {"output_max_v": 151.0}, "([actuator.serial])"),
         ("lab-nidaq.toml", {"output_min_v": -5.0}, "([actuator.nidaq])"),
+        ("sim.toml", {"ki_v_per_m_s": 1e30}, "ki_v_per_m_s 1e+30 is implausible: above 1.5e+15"),
+        ("sim.toml", {"kp_v_per_m": 2e14}, "kp_v_per_m 2e+14 is implausible: above 1.5e+14"),
+        ("lab-modbus.toml", {"kd_v_s_per_m": 1e20}, "kd_v_s_per_m 1e+20 is implausible"),
     ],
 )
 def test_tune_values_are_checked_against_the_devices(base: str, values: dict[str, float],
@@ -78,7 +81,18 @@ def test_tune_values_are_checked_against_the_devices(base: str, values: dict[str
         check_tune_values(cfg, values)
     assert needle in str(err.value)
     check_tune_values(cfg, {"setpoint_m": 2e-6, "output_min_v": 10.0, "output_max_v": 140.0,
-                            "kp_v_per_m": 1e30})
+                            "kp_v_per_m": 1e9, "ki_v_per_m_s": 1e12, "kd_v_s_per_m": 1e9})
+
+
+def test_an_implausible_gain_in_a_config_file_is_refused_naming_file_and_key(
+        tmp_path: Path) -> None:
+    text = (REPO / "config" / "sim.toml").read_text()
+    assert "ki_v_per_m_s = 3.2e7" in text
+    bad = tmp_path / "typo.toml"
+    bad.write_text(text.replace("ki_v_per_m_s = 3.2e7", "ki_v_per_m_s = 3.2e70"))
+    with pytest.raises(ConfigError, match=rf"{bad}: controller.ki_v_per_m_s 3.2e\+70 is "
+                                          "implausible"):
+        load_config(bad)
 
 
 @pytest.mark.parametrize(

@@ -468,3 +468,22 @@ def test_status_text_says_what_a_null_means() -> None:
     assert "slew none V/s" in text
     assert ("log         no file open (logging is down; retrying), 10 samples, FAULT: "
             "[Errno 28] No space left on device, 5 dropped") in text
+
+
+def test_status_tells_a_stalled_loop_from_a_healthy_one(start_daemon) -> None:  # type: ignore[no-untyped-def]
+    """Outside systemd no watchdog notices a loop hung in a device call; `status` must."""
+    d = start_daemon(rate_hz=10.0, sim="hang_at_s = 3.0\nhang_for_s = 4.0")
+    first = json.loads(d.cli("status", "--json").stdout)["loop"]
+    assert not first["stalled"] and first["last_cycle_age_s"] < 1.0
+    deadline = time.monotonic() + 10.0
+    while not (st := json.loads(d.cli("status", "--json").stdout))["loop"]["stalled"]:
+        assert time.monotonic() < deadline, "never reported stalled"
+        time.sleep(0.2)
+    assert st["loop"]["last_cycle_age_s"] > 1.0
+    assert "LOOP STALLED: no cycle for" in d.cli("status").stdout
+    deadline = time.monotonic() + 10.0  # the device answers again: healthy again
+    while json.loads(d.cli("status", "--json").stdout)["loop"]["stalled"]:
+        assert time.monotonic() < deadline, "still stalled after the hang ended"
+        time.sleep(0.2)
+    assert "STALLED" not in d.cli("status").stdout
+    d.stop()

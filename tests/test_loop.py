@@ -333,3 +333,37 @@ def test_simulated_actuator_refuses_a_nan_command() -> None:
     loop, _, _ = make_loop()
     with pytest.raises(DriverError, match="NaN"):
         loop.actuator.write(math.nan, 0.1)
+
+
+class MovedSensor:
+    """The real simulated sensor; `fail` reads raise, and `shift_m` is added to the rest."""
+
+    def __init__(self, inner) -> None:  # type: ignore[no-untyped-def]
+        self.inner, self.fail, self.shift_m = inner, 0, 0.0
+
+    def read(self, t_s: float) -> Reading:
+        r = self.inner.read(t_s)
+        if self.fail:
+            self.fail -= 1
+            raise DriverError("cable pulled")
+        return replace(r, value_m=r.value_m + self.shift_m)
+
+
+def test_after_a_reset_the_spike_filter_takes_the_first_reading_as_its_new_reference() -> None:
+    """The stand moved 1 um while in fault: with a tight max_step_m the first readings after
+    the reset must not be rejected as spikes against the last one before the fault."""
+    cfg = Config()
+    cfg = replace(cfg, loop=replace(cfg.loop, max_step_m=50e-9, spike_reject_max=5))
+    loop, mem, clock = make_loop(cfg)
+    loop.policy = cfg.loop
+    sensor = loop.sensor = MovedSensor(loop.sensor)
+    run(loop, clock, 5)
+    sensor.fail = 10
+    run(loop, clock, 10)
+    assert loop.state == FAULT
+    sensor.shift_m = 1e-6
+    loop.reset(mem.samples[-1].t_s)
+    n = len(mem.samples)
+    run(loop, clock, 5)
+    assert all(s.status == 0 for s in mem.samples[n:])
+    assert not any("spike" in e.reason for e in mem.events)
