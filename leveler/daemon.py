@@ -38,7 +38,7 @@ from leveler.notify import Notifier
 from leveler.persist import set_keys, write_atomic
 from leveler.pid import PID, PIDGains
 from leveler.protocol import ProtocolError, default_socket_path, modulate_args, tune_args
-from leveler.rt import lock_memory, scheduler
+from leveler.rt import freeze_heap, lock_memory, scheduler
 from leveler.settings import ControllerConfig, check_tune_values, load_config
 from leveler.stand import Stand, open_stand
 
@@ -401,6 +401,7 @@ class Daemon:
         # interval (5 ms by default) after its deadline: keep that below a period.
         sys.setswitchinterval(min(sys.getswitchinterval(), self.dt / 4))
         self.memory, self.scheduler = lock_memory(), scheduler()
+        frozen = freeze_heap()  # last before the loop: what exists now lives as long
         print(f"leveler {__version__}: {cfg.sensor.backend} backend at {cfg.loop.rate_hz:g} Hz, "
               f"logging to {self.log.path}, control socket {self.socket_path}", flush=True)
         wd = self.notifier.watchdog_interval_s
@@ -413,7 +414,7 @@ class Daemon:
             t = clock.tick()
             loop.emit("start", "daemon started", t, config=str(self.config_path),
                       socket=str(self.socket_path), scheduler=self.scheduler,
-                      memory=self.memory)
+                      memory=self.memory, heap_frozen=frozen)
             loop.cycle(t, clock.wall_ns(t))
             if self.cfg.loop.engage_on_start:
                 loop.engage(t, "engage_on_start")

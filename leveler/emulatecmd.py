@@ -13,6 +13,7 @@ from pathlib import Path
 
 from leveler.config import ConfigError
 from leveler.emufaults import Fault, check_kinds, start_schedule
+from leveler.rt import freeze_heap
 from leveler.settings import Config, load_config
 from leveler.sim.plant import Plant
 
@@ -67,6 +68,7 @@ def _modbus(args: argparse.Namespace, cfg: Config, plant: Plant, seed: int,
             emu.inject(f.kind, f.count)  # type: ignore[arg-type]  # checked by check_kinds
 
         start_schedule(args.fault, inject, stop)
+        freeze_heap()  # a module answers in bounded time: no full collection of the set-up
         stop.wait()
     print(f"leveler emulate modbus: stopped after {plant.n * plant.dt_s:.1f} s of plant time")
     return 0
@@ -97,6 +99,7 @@ def _serial(args: argparse.Namespace, cfg: Config, plant: Plant, seed: int,
             emu.inject(kind, f.count, port=port)  # type: ignore[arg-type]  # checked
 
         start_schedule(args.fault, inject, stop)
+        freeze_heap()  # a module answers in bounded time: no full collection of the set-up
         stop.wait()
     print(f"leveler emulate serial: stopped after {plant.n * plant.dt_s:.1f} s of plant time")
     return 0

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import gc
 import os
 
 
@@ -53,6 +54,20 @@ def lock_memory() -> str:
     if libc.mlockall(_MCL_CURRENT | _MCL_FUTURE) != 0:
         return f"not locked: mlockall failed: {os.strerror(ctypes.get_errno())}"
     return "locked"
+
+
+def freeze_heap() -> int:
+    """Collect once, then move every object alive now out of the garbage collector's reach.
+
+    What exists when the loop starts (modules, config, drivers, buffers) lives as long as
+    the process, and scanning it is what makes a full collection slow: measured 14-24 ms in
+    the daemon at start-up, one to two periods at 100 Hz, tens at 1 kHz, on the loop
+    thread. Frozen, a full collection in the loop scans only what was made since.
+    Returns the number of objects frozen (for the start event).
+    """
+    gc.collect()
+    gc.freeze()
+    return gc.get_freeze_count()
 
 
 def scheduler() -> str:

@@ -33,3 +33,14 @@ def test_under_fifo_memory_is_locked_as_the_service_asks() -> None:
     assert result == "locked"
     assert sched == "SCHED_FIFO 10"
     assert int(locked_kib) > 10_000  # the interpreter, numpy and the rest, resident for good
+
+
+def test_freezing_the_heap_leaves_the_collector_only_what_comes_later() -> None:
+    probe = ("import gc, numpy, leveler.daemon; from leveler.rt import freeze_heap; "
+             "n = freeze_heap(); later = [[i] for i in range(1000)]; "
+             "print(n, len(gc.get_objects(2)), gc.get_freeze_count())")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                         timeout=60, check=True).stdout.split()
+    frozen, old_left, count = (int(v) for v in out)
+    assert frozen > 50_000 and count == frozen  # the daemon's modules, numpy, ...
+    assert old_left < 1_000  # what a full collection still scans of them: nearly nothing
