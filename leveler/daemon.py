@@ -466,7 +466,7 @@ class Daemon:
                     reason += ("; the safe voltage could NOT be set (actuator unreachable): "
                                "the piezo holds its last voltage")
                     _log.critical("stopping: %s", reason)
-                if loop.state == ENGAGED:
+                if loop.state in (ENGAGED, MODULATING):  # the log says what was cut short
                     loop.disengage(t, reason)
                 loop.emit("stop", reason, t, overruns=clock.overruns,
                           sensor_errors=loop.errors["sensor"],

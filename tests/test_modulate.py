@@ -129,3 +129,24 @@ def test_torsion_pendulum_ratio_and_the_roll_pitch_split_it_implies() -> None:
     out = _cli("--sim", "--amplitude-v", "5", "--period", "120s", "--cycles", "2",
                "--tp-com-x-m", "0")
     assert out.returncode == 0 and "needs l_cm,x" in out.stdout
+
+
+def test_a_modulation_cut_short_by_sigterm_is_logged_as_aborted(
+        start_daemon: Callable[..., object]) -> None:
+    """Whoever analyses the log must see that the wave did not run its course."""
+    d = start_daemon(rate_hz=20.0, engage=False)
+    d.wait_status_lines(1)  # type: ignore[attr-defined]
+    started = subprocess.Popen([sys.executable, "-m", "leveler.cli", "modulate",
+                                "--amplitude-v", "1", "--period", "10s", "--socket",
+                                str(d.socket)],  # type: ignore[attr-defined]
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 5
+    while json.loads(d.cli("status", "--json").stdout)["state"] != "modulating":  # type: ignore[attr-defined]
+        assert time.monotonic() < deadline, "never modulating"
+        time.sleep(0.05)
+    d.stop()  # type: ignore[attr-defined]
+    started.communicate(timeout=10)
+    log = read_log(next(d.logs.glob("*.mcap")))  # type: ignore[attr-defined]
+    procs = [e["reason"] for e in log.events if e["kind"] == "procedure"]
+    assert procs == ["modulation started", "modulation aborted: SIGTERM"]
+    assert log.events[-1]["kind"] == "stop" and log.events[-1]["detail"]["safe"]
