@@ -300,12 +300,14 @@ def _run_child(mode: str, duration_s: float, priority: int, tmp: Path,
     return {**json.loads(out.read_text()), "rss": rss}
 
 
-def _cyclictest(duration_s: float, priority: int, tmp: Path) -> dict[str, Any]:
+def _cyclictest(duration_s: float, priority: int, tmp: Path,
+                interval_us: int = PERIOD_US) -> dict[str, Any]:
     """cyclictest, one thread, same policy/priority/interval, mlockall; its histogram."""
     path = tmp / "cyclictest.json"
     cmd = ["cyclictest", "--mlockall", "--policy=fifo", f"--priority={priority}",
-           f"--interval={PERIOD_US}", "--threads=1",
-           f"--loops={round(duration_s * RATE_HZ)}", "--quiet", f"--histogram={HIST_US}",
+           f"--interval={interval_us}", "--threads=1",
+           f"--loops={round(duration_s * 1e6 / interval_us)}", "--quiet",
+           f"--histogram={HIST_US}",
            "--default-system", f"--json={path}"]
     if os.geteuid() != 0:  # as the daemon's child would run: normal scheduling, no lock
         cmd = [c for c in cmd if c not in ("--mlockall", "--policy=fifo")

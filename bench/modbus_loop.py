@@ -2,6 +2,11 @@
 overruns, period statistics and driver errors, next to the same daemon on the simulated
 backend (the baseline, measured in the same run). Goal (issue 5): no overruns over 10 minutes.
 
+The machine's own limit comes first: `cyclictest` (Debian rt-tests) for as long, at the same
+interval (10 ms), policy and priority, counts how often the kernel itself woke a real-time
+thread more than one period late. No program can do better than that; on a VM with steal
+time it is not zero.
+
 As root, the daemon runs under SCHED_FIFO 50, the policy systemd/leveler.service gives it,
 and the emulator at 60 (a module answers on its own CPU); otherwise both under normal
 scheduling, and the table says which.
@@ -18,9 +23,12 @@ import sys
 import tempfile
 from pathlib import Path
 
+from loop_timing import _cyclictest  # beside this script
+
 from leveler.logreader import read_log
 
 REPO = Path(__file__).resolve().parents[1]
+PERIOD_US = 10_000  # 100 Hz
 
 
 def _free_port() -> int:
@@ -66,9 +74,20 @@ def _run_daemon(config: Path, duration_s: float) -> dict:
             "faults": len(faults), "driver_errors": errors, "period_ms": [p50, p99, pmax]}
 
 
+def _os_limit(duration_s: float, tmp: Path) -> dict | None:
+    """cyclictest's wake-ups more than one period late, or None if it is not installed."""
+    if shutil.which("cyclictest") is None:
+        return None
+    ct = _cyclictest(duration_s, 50, tmp, PERIOD_US)
+    hist = ct["late_hist"]
+    return {"cycles": sum(hist), "late": sum(hist[PERIOD_US + 1:]),
+            "late_max_ms": ct["late_max_ns"] / 1e6, "cmd": ct["cmd"]}
+
+
 def main(duration_s: float) -> dict:
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
+        os_limit = _os_limit(duration_s, tmp)
         port = _free_port()
         base = _run_daemon(_config(tmp, "sim.toml", port), duration_s)
         cfg = _config(tmp, "lab-modbus.toml", port)
@@ -88,13 +107,22 @@ def main(duration_s: float) -> dict:
           f"scheduling {policy}")
     print(f"{'backend':<26} {'samples':>8} {'overruns':>9} {'faults':>7} {'drv errors':>10} "
           f"{'period p50/p99/max [ms]':>25}")
+    if os_limit is not None:
+        print(f"{'cyclictest (the OS limit)':<26} {os_limit['cycles']:8d} {os_limit['late']:9d} "
+              f"{'-':>7} {'-':>10} {'max lateness ' + format(os_limit['late_max_ms'], '.2f'):>25}")
     for name, r in (("sim (baseline)", base), ("modbus (emulated module)", modbus)):
         p = "/".join(f"{v:.2f}" for v in r["period_ms"])
         print(f"{name:<26} {r['samples']:8d} {r['overruns']:9d} {r['faults']:7d} "
               f"{r['driver_errors']:10d} {p:>25}")
     print(f"goal: no overruns over 10 min ({'met' if modbus['overruns'] == 0 else 'MISSED'} "
           f"over {duration_s:g} s)")
-    return {"duration_s": duration_s, "scheduling": policy, "sim": base, "modbus": modbus}
+    if os_limit is None:
+        print("cyclictest not installed (apt-get install rt-tests): no OS baseline")
+    else:
+        print(f"this machine: cyclictest woke {os_limit['late']} times more than a period late "
+              f"({os_limit['cmd']})")
+    return {"duration_s": duration_s, "scheduling": policy, "cyclictest": os_limit,
+            "sim": base, "modbus": modbus}
 
 
 if __name__ == "__main__":

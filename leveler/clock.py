@@ -59,9 +59,15 @@ class RealtimeClock:
         self._stats_at = 0.0
 
     def tick(self) -> float:
-        """Sleep until the next deadline; returns loop time (s since start) of that deadline."""
+        """Sleep until the next deadline; returns loop time (s since start) of that deadline.
+
+        The first tick starts the schedule (loop time 0): the daemon's start-up between
+        building the clock and its first cycle is not a late cycle."""
         now = time.monotonic_ns()
-        if self._next_ns > now:
+        if self._last_ns is None:
+            self._start_ns = self._next_ns = now
+            self._wall0_ns = self._wall_now_ns()
+        elif self._next_ns > now:
             time.sleep((self._next_ns - now) / 1e9)
             now = time.monotonic_ns()
         late = now - self._next_ns
