@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import logging
 import math
 import signal
 import threading
@@ -31,6 +32,9 @@ def run_emulate_command(args: argparse.Namespace) -> int:
         signal.signal(sig, lambda *_: stop.set())
     if args.kind == "serial":
         return _serial(args, cfg, plant, seed, stop)
+    # A client that gave up on a late reply makes pymodbus print "Cancel send, because not
+    # connected!" and a frame dump; the client (the daemon) reports its side of it.
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     return _modbus(args, cfg, plant, seed, stop)
 
 
