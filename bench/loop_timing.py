@@ -300,7 +300,7 @@ def _run_child(mode: str, duration_s: float, priority: int, tmp: Path,
     return {**json.loads(out.read_text()), "rss": rss}
 
 
-def _cyclictest(duration_s: float, priority: int, tmp: Path,
+def run_cyclictest(duration_s: float, priority: int, tmp: Path,
                 interval_us: int = PERIOD_US) -> dict[str, Any]:
     """cyclictest, one thread, same policy/priority/interval, mlockall; its histogram."""
     path = tmp / "cyclictest.json"
@@ -356,7 +356,7 @@ def measure(quick: bool, duration_s: float | None = None) -> dict[str, Any]:
         config = _config(tmp)
         for _ in range(int(pl["rounds"])):
             if have_ct:
-                runs["cyclictest"].append(_cyclictest(pl["cyclictest"], prio, tmp))
+                runs["cyclictest"].append(run_cyclictest(pl["cyclictest"], prio, tmp))
             runs["logged"].append(_run_child("logged", pl["logged"], prio, tmp, config))
             runs["unlogged"].append(_run_child("unlogged", pl["unlogged"], prio, tmp, config))
             runs["bare"].append(_run_child("bare", pl["bare"], prio, tmp))

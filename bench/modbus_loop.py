@@ -4,8 +4,8 @@ backend (the baseline, measured in the same run). Goal (issue 5): no overruns ov
 
 The machine's own limit comes first: `cyclictest` (Debian rt-tests) for as long, at the same
 interval (10 ms), policy and priority, counts how often the kernel itself woke a real-time
-thread more than one period late. No program can do better than that; on a VM with steal
-time it is not zero.
+thread more than one period late. No program can do better than that; on a VM whose host
+stalls it, it is not zero.
 
 As root, the daemon runs under SCHED_FIFO 50, the policy systemd/leveler.service gives it,
 and the emulator at 60 (a module answers on its own CPU); otherwise both under normal
@@ -23,7 +23,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from loop_timing import _cyclictest  # beside this script
+from loop_timing import run_cyclictest  # beside this script
 
 from leveler.logreader import read_log
 
@@ -78,7 +78,7 @@ def _os_limit(duration_s: float, tmp: Path) -> dict | None:
     """cyclictest's wake-ups more than one period late, or None if it is not installed."""
     if shutil.which("cyclictest") is None:
         return None
-    ct = _cyclictest(duration_s, 50, tmp, PERIOD_US)
+    ct = run_cyclictest(duration_s, 50, tmp, PERIOD_US)
     hist = ct["late_hist"]
     return {"cycles": sum(hist), "late": sum(hist[PERIOD_US + 1:]),
             "late_max_ms": ct["late_max_ns"] / 1e6, "cmd": ct["cmd"]}
