@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import socket
+import struct
 import subprocess
 import sys
 import time
@@ -79,3 +80,28 @@ def test_daemon_levels_the_emulated_plant_faults_when_it_goes_and_resumes(
     assert reconnects[-1] == "devices answer again"
     states = [e["detail"]["new"] for e in log.events if e["kind"] == "state"]
     assert states[-4:] == ["fault", "idle", "engaged", "idle"]
+
+
+def test_clients_that_hang_up_before_the_reply_leave_the_emulator_quiet(tmp_path: Path) -> None:
+    """A client that gives up on a late reply (the daemon after its timeout) made pymodbus
+    print "Cancel send, because not connected!" and a frame dump per request into the
+    emulator's output; the emulator silences that logger, and keeps serving."""
+    port = _free_port()
+    config = daemon_config(tmp_path, tmp_path / "unused.sock", rate_hz=10.0,
+                           base="lab-modbus.toml", replace={"port = 5020": f"port = {port}"})
+    emu = _emulator(config)
+    try:
+        read_input_registers = struct.pack(">HHHBBHH", 7, 0, 6, 1, 4, 0, 1)  # MBAP + FC 4
+        for _ in range(30):  # request, then reset the connection before the reply
+            with socket.create_connection(("127.0.0.1", port), timeout=5) as c:
+                c.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+                c.sendall(read_input_registers)
+        with socket.create_connection(("127.0.0.1", port), timeout=5) as c:  # still serving
+            c.sendall(read_input_registers)
+            reply = c.recv(64)
+        assert reply[:2] == b"\x00\x07" and reply[7] == 4 and reply[8] == 2, reply.hex()
+    finally:
+        emu.terminate()
+        _, err = emu.communicate(timeout=10)
+    assert emu.returncode == 0
+    assert err == "", err[:1000]
