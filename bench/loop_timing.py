@@ -48,8 +48,9 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
+import numpy as np
 from common import REPO, row  # beside this script
 
 SECTION = "loop timing"
@@ -386,17 +387,32 @@ def per_1e5(count: int, cycles: int) -> float:
     return count / max(cycles, 1) * 1e5
 
 
-def rss_growth(rss: list[tuple[float, int]]) -> tuple[int, float, int] | None:
-    """(KiB, seconds, KiB at the start) from the end of the warm-up (20% of the run, at
-    least 5 s) to the last reading."""
+class RssGrowth(NamedTuple):
+    """VmRSS after the warm-up. RSS swings by a few hundred KiB as the allocator takes and
+    returns pages, so the growth is the least-squares slope across all readings times the
+    span, not the last reading minus the first (one swing would pass for a leak)."""
+
+    fitted_kib: float  # slope x span
+    span_s: float
+    first_kib: int
+    last_kib: int
+    spread_kib: int  # max - min
+
+
+def rss_growth(rss: list[tuple[float, int]]) -> RssGrowth | None:
+    """The growth from the end of the warm-up (20% of the run, at least 5 s) to the last
+    reading."""
     if not rss:
         return None
     end = rss[-1][0]
     warm = [s for s in rss if s[0] >= max(5.0, 0.2 * end)]
     if len(warm) < 2:
         return None
-    (t0, first), (t1, last) = warm[0], warm[-1]
-    return last - first, t1 - t0, first
+    t = np.array([s[0] for s in warm])
+    kib = np.array([s[1] for s in warm])
+    span = float(t[-1] - t[0])
+    slope = float(np.polyfit(t, kib, 1)[0]) if span > 0 else 0.0
+    return RssGrowth(slope * span, span, int(kib[0]), int(kib[-1]), int(kib.max() - kib.min()))
 
 
 def rows(m: dict[str, Any]) -> list[dict[str, Any]]:
@@ -500,14 +516,17 @@ def rows(m: dict[str, Any]) -> list[dict[str, Any]]:
         lg["dropped"] == 0, f"dropped {lg['dropped']}" + (f"; log error: {lg['log_error']}"
                                                          if lg["log_error"] else ""))
     growth = max((g for g in map(rss_growth, lg["rss_runs"]) if g is not None),
-                 key=lambda g: g[1], default=None)
+                 key=lambda g: g.span_s, default=None)
     if growth is not None:
-        kib, span, first = growth
-        rate = (f"; {kib / 1024 / span * 3600:.1f} MiB/h" if span >= RSS_RATE_MIN_S else
-                f"; a run under {RSS_RATE_MIN_S:g} s gives no hourly rate (make bench-soak)")
-        add("daemon RSS growth, logging on", kib / 1024, "MiB", f"start {first / 1024:.0f} MiB",
-            None, note=f"VmRSS over {span:.0f} s of the logged run, after its warm-up{rate}. "
-            "With mlockall every mapping is resident, thread stacks included")
+        g = growth
+        rate = (f"{g.fitted_kib / 1024 / g.span_s * 3600:+.2f} MiB/h" if g.span_s >= RSS_RATE_MIN_S
+                else f"a run under {RSS_RATE_MIN_S:g} s gives no hourly rate (make bench-soak)")
+        add("daemon RSS growth, logging on", g.fitted_kib / 1024, "MiB",
+            f"start {g.first_kib / 1024:.0f} MiB", None,
+            note=f"VmRSS over {g.span_s:.0f} s of the logged run after its warm-up, least-squares "
+            f"slope x span: {rate}; readings spread over {g.spread_kib / 1024:.2f} MiB, last "
+            f"minus first {(g.last_kib - g.first_kib) / 1024:+.2f} MiB. With mlockall every "
+            "mapping is resident, thread stacks included")
     return out
 
 

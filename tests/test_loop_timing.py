@@ -139,9 +139,18 @@ def test_percentiles_and_late_cycles_read_histograms_as_cyclictest(bench: Module
 
 def test_rss_growth_skips_the_warm_up(bench: ModuleType) -> None:
     rss = [(float(t), 1000 + 10 * t) for t in range(0, 101)]  # 10 KiB/s throughout
-    kib, span, first = bench.rss_growth(rss)
-    assert (first, span, kib) == (1200, 80.0, 800)
+    g = bench.rss_growth(rss)
+    assert (g.first_kib, g.last_kib, g.span_s, g.spread_kib) == (1200, 2000, 80.0, 800)
+    assert g.fitted_kib == pytest.approx(800)
     assert bench.rss_growth([(0.0, 5), (1.0, 6)]) is None
+
+
+def test_rss_growth_is_a_fit_one_swing_at_the_end_is_not_a_leak(bench: ModuleType) -> None:
+    rss = [(float(t), 1000 + (300 if t % 2 else 0)) for t in range(0, 100)]  # flat, swinging
+    rss.append((100.0, 1600))  # the last reading high: last - first = 600 KiB
+    g = bench.rss_growth(rss)
+    assert g.last_kib - g.first_kib == 600 and g.spread_kib == 600
+    assert abs(g.fitted_kib) < 60  # the fit sees the flat run
 
 
 def _run(bench: ModuleType, late_us: dict[int, int], **extra: object) -> dict[str, object]:
