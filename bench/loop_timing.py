@@ -515,10 +515,9 @@ def rows(m: dict[str, Any]) -> list[dict[str, Any]]:
         f"cycles {lg['cycles'] + int(pl['rounds'])}", None, "no drops",
         lg["dropped"] == 0, f"dropped {lg['dropped']}" + (f"; log error: {lg['log_error']}"
                                                          if lg["log_error"] else ""))
-    growth = max((g for g in map(rss_growth, lg["rss_runs"]) if g is not None),
-                 key=lambda g: g.span_s, default=None)
-    if growth is not None:
-        g = growth
+    g = max((g for g in map(rss_growth, lg["rss_runs"]) if g is not None),
+            key=lambda g: g.span_s, default=None)
+    if g is not None:
         rate = (f"{g.fitted_kib / 1024 / g.span_s * 3600:+.2f} MiB/h" if g.span_s >= RSS_RATE_MIN_S
                 else f"a run under {RSS_RATE_MIN_S:g} s gives no hourly rate (make bench-soak)")
         add("daemon RSS growth, logging on", g.fitted_kib / 1024, "MiB",
