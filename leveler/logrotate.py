@@ -12,6 +12,13 @@ across files without a gap or a repeat.
 A write error (ENOSPC, EIO, EROFS ...) kills only the current file: its closed chunks stay
 readable, the samples that follow are counted as dropped, and every `retry_interval_s` a
 fresh file is tried. The first events of the file that resumes logging say what was lost.
+
+A file that leaves its place while written (deleted, its directory removed or moved) and a
+rotation that cannot open a new file are log faults too: `healthy` turns False and a new
+file is tried every `retry_interval_s` (the directory re-created where allowed) while
+writing goes on into the open one. A deleted file is still readable through its open
+descriptor: once finished it is copied back into the directory, so nothing is lost unless
+that copy fails, and then its samples are counted as lost.
 """
 
 from __future__ import annotations
@@ -19,6 +26,8 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import os
+import shutil
 import threading
 import time
 from collections.abc import Callable
@@ -143,6 +152,11 @@ class RotatingLog:
         self.on_fault = on_fault
         self.files: list[Path] = []
         self.last_error: str | None = None
+        self.faults = 0  # log faults since start; `last_fault` the newest, with its UTC time
+        self.last_fault: str | None = None
+        self._fault: str | None = None  # a fault while a file is still being written
+        self._open_error = ""  # why the last attempt to open a file failed
+        self._displaced_seen: LogWriter | None = None
         self._metadata = dict(metadata)
         self._truth = truth
         self._new_writer = partial(LogWriter, chunk_interval_s=chunk_interval_s,
@@ -189,10 +203,10 @@ class RotatingLog:
 
     @property
     def healthy(self) -> bool:
-        """False from a write error until a new file is open; `last_error` says why. A new
-        file clears `last_error`: a status that says healthy carries no stale error (the
-        log's `fault` event keeps what happened)."""
-        return self._outage is None
+        """False from a write error, a displaced file or a failed rotation until a new file
+        is open; `last_error` says why. A new file clears `last_error`: a status that says
+        healthy carries no stale error (`last_fault` and the log's events keep it)."""
+        return self._outage is None and self._fault is None
 
     @property
     def samples_written(self) -> int:
@@ -222,7 +236,9 @@ class RotatingLog:
                 else:
                     self._handed += 1
                     if not self._opening and (w.bytes_written >= self._rotate_bytes
-                                              or self._clock() >= self._rotate_at):
+                                              or self._clock() >= self._rotate_at
+                                              or w.displaced is not None
+                                              or self._fault is not None):
                         self._rotate_due(w)
                     return
             self._lost += 1
@@ -279,7 +295,7 @@ class RotatingLog:
                 raise LogError(f"{self.directory}: no new log file within {_ROTATE_WAIT_S:g} s;"
                                " it starts once the file system answers")
             if self._opened == opened or self._writer is None:
-                raise LogError(f"cannot start a new log file: {self.last_error}")
+                raise LogError(f"cannot start a new log file: {self._open_error}")
             return self._writer.path
 
     def close(self) -> None:
@@ -301,9 +317,23 @@ class RotatingLog:
     # -- under the lock, from any thread -----------------------------------------------
 
     def _rotate_due(self, w: LogWriter) -> None:
+        if w.displaced is not None and self._displaced_seen is not w:
+            self._displaced_seen = w
+            self._set_fault(f"{w.displaced}; writing goes on into the open file until a new "
+                            "one is open" + (", then it is copied back" if w.deleted else ""))
+            self._closer.put(partial(self._report, self._fault or ""))
         if self._clock() >= self._next_try:
-            self._request("rotated (size)" if w.bytes_written >= self._rotate_bytes
-                          else "rotated (time)")
+            self._request(f"rotated ({w.displaced})" if w.displaced is not None
+                          else "rotated (size)" if w.bytes_written >= self._rotate_bytes
+                          else "rotated (time)" if self._clock() >= self._rotate_at
+                          else f"rotated (retry after: {self._fault})")
+
+    def _set_fault(self, text: str) -> None:
+        """A log fault while a file is still written; counted once until a new file opens."""
+        if self._fault is None:
+            self.faults += 1
+        self._fault = self.last_error = text
+        self.last_fault = f"{datetime.now(UTC):%Y-%m-%d %H:%M:%S} UTC: {text}"
 
     def _maybe_retry(self) -> None:
         if not self._opening and not self._closed and self._clock() >= self._next_try:
@@ -351,7 +381,7 @@ class RotatingLog:
                             {"previous": self.files[-1].name, "part": len(self.files) + 1}),
                       log_time_ns)
         self.files.append(new.path)
-        self._writer, self._handed, self._outage = new, 0, None
+        self._writer, self._handed, self._outage, self._fault = new, 0, None, None
         self.last_error = None  # what failed before is in `new`'s events, not news now
         self._rotate_at = self._clock() + self._rotate_interval
         self._next_try = -math.inf
@@ -398,9 +428,14 @@ class RotatingLog:
             self._opening = False
             self._opens += 1
             if isinstance(new, str):
-                self.last_error = new
+                self.last_error = self._open_error = new
                 self._next_try = self._clock() + self._retry_interval
                 still = self.path  # None: logging is down, that was reported already
+                if still is not None:  # a fault too: retried every retry_interval_s
+                    w = self._writer
+                    moved = f"{w.displaced}; " if w is not None and w.displaced else ""
+                    self._set_fault(f"{moved}cannot start a new log file: {new}; still "
+                                    f"writing {still.name}")
             elif self._closed:
                 unused = new
             else:
@@ -419,7 +454,64 @@ class RotatingLog:
     # -- the closer thread ---------------------------------------------------------------
 
     def _finish(self, r: _Retired) -> None:
-        """Close a retired file; if that fails, account for and report its lost tail."""
+        """Close a retired file; if that fails, account for and report its lost tail. A file
+        deleted while it was written is copied back from its descriptor once finished."""
+        w = r.writer
+        deleted = w.open_deleted() if w.deleted else None  # before close(): the only way back
+        try:
+            self._close_retired(r)
+            if w.deleted and not self._restore(w, deleted):
+                with self._lock:
+                    self._written -= w.samples_written
+                    self._lost += w.samples_written
+                    self.files.remove(w.path)
+        finally:
+            if deleted is not None:
+                os.close(deleted)
+
+    def _restore(self, w: LogWriter, fd: int | None) -> bool:
+        """Copy the deleted file behind `fd` back under its name (the directory re-created
+        where allowed); False, reported, if that fails."""
+        dest = self.directory / w.path.name
+        if dest.exists():
+            dest = dest.with_name(f"{dest.stem}.restored.mcap")
+        tmp = dest.with_name(dest.name + ".new")
+        try:
+            if fd is None:
+                raise OSError("no descriptor to read it through (is /proc mounted?)")
+            self.directory.mkdir(parents=True, exist_ok=True)
+            with open(fd, "rb", closefd=False) as src, open(tmp, "wb") as out:
+                src.seek(0)
+                shutil.copyfileobj(src, out, 1 << 20)
+                out.flush()
+                os.fsync(out.fileno())
+            os.replace(tmp, dest)
+            dir_fd = os.open(self.directory, os.O_RDONLY | os.O_DIRECTORY)
+            try:
+                os.fsync(dir_fd)
+            finally:
+                os.close(dir_fd)
+        except OSError as e:
+            with contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)
+            self._report(f"{w.path} was deleted while being written and cannot be restored: "
+                         f"{e}; its {w.samples_written} samples are lost")
+            return False
+        text = (f"{w.path.name} was deleted while being written; restored from its open "
+                f"descriptor into {dest} ({w.samples_written} samples)")
+        with self._lock:
+            self.files = [dest if f == w.path else f for f in self.files]
+            self.last_fault = f"{datetime.now(UTC):%Y-%m-%d %H:%M:%S} UTC: {text}"
+            if self._writer is not None:
+                t_s, log_time_ns = self._last
+                with contextlib.suppress(LogError):  # a failing writer reports itself
+                    self._writer.event(Event(t_s, "log", text, {
+                        "file": w.path.name, "restored_to": str(dest),
+                        "samples": w.samples_written}), log_time_ns)
+        _log.warning("%s", text)
+        return True
+
+    def _close_retired(self, r: _Retired) -> None:
         w = r.writer
         try:
             w.close()

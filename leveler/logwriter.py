@@ -406,6 +406,8 @@ class LogWriter:
         self._flushed = (0, 0)  # (samples, newest log_time_ns) known to be in the file
         self._last_flush = time.monotonic()
         self._error: BaseException | None = None
+        self._displaced: str | None = None
+        self._deleted = False  # displaced because its last link went
         self._closed = False
         self._stop = threading.Event()
         self._wake = threading.Event()
@@ -446,6 +448,27 @@ class LogWriter:
     def dropped(self) -> int:
         """Samples and truth records refused because the backlog was full; should stay 0."""
         return self._dropped
+
+    @property
+    def displaced(self) -> str | None:
+        """Why the file being written is no longer at its path (deleted, its directory
+        removed or moved, or another file in its place), or None. Checked by the writer
+        thread at every chunk; writing goes on into the open file either way."""
+        return self._displaced
+
+    @property
+    def deleted(self) -> bool:
+        """Displaced because the file was deleted (not moved): only its descriptor holds it."""
+        return self._deleted
+
+    def open_deleted(self) -> int | None:
+        """A read-only descriptor of the deleted file (call before close()), or None if there
+        is no /proc or the file is closed: what it holds stays readable through /proc while
+        it is open, so it can be copied back."""
+        try:
+            return os.open(f"/proc/self/fd/{self._file.fileno()}", os.O_RDONLY | os.O_CLOEXEC)
+        except (OSError, ValueError):  # ValueError: the writer thread closed the file
+            return None
 
     @property
     def backlog(self) -> int:
@@ -620,6 +643,28 @@ class LogWriter:
             self._mcap.flush()  # closes the chunk and flushes the file to the OS
             self._flushed = (self._samples_written, self._last[1])
             self._last_flush = time.monotonic()
+            if self._displaced is None:
+                self._check_in_place()
+
+    def _check_in_place(self) -> None:
+        """Notice a file that was deleted, or whose directory was removed or moved: writes
+        to it succeed and `status` would say healthy while nothing reaches the log."""
+        fd_st = os.fstat(self._file.fileno())
+        if fd_st.st_nlink == 0:
+            gone = "" if self._path.parent.is_dir() else " (its directory is gone)"
+            self._deleted = True
+            self._displaced = f"{self._path} was deleted while being written{gone}"
+            return
+        try:
+            path_st = os.stat(self._path)
+        except (FileNotFoundError, NotADirectoryError):
+            path_st = None
+        except OSError:  # e.g. the directory made unreadable: the file may still be there
+            return
+        if path_st is None or not os.path.samestat(path_st, fd_st):
+            self._displaced = (f"{self._path} is no longer at its path (its directory was "
+                               "moved or the file renamed or replaced); what it holds is "
+                               "wherever it went")
 
     def _count_whole_chunks(self) -> None:
         """A chunk that reached the file whole is readable even if the flush after it (or

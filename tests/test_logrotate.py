@@ -302,3 +302,96 @@ def test_full_disk_is_a_fault_that_logging_survives(tmp_path: Path) -> None:
                           capture_output=True, text=True, timeout=60)
     assert done.returncode == 0, done.stdout + done.stderr
     print(done.stdout)
+
+
+def _sample_until(log: RotatingLog, seq: int, rng: random.Random, cond: Callable[[], bool],
+                  what: str) -> int:
+    """Hand on samples (every 2 ms of real time: the writer's checks run on its thread)
+    until cond(); returns the next seq."""
+    deadline = time.monotonic() + 10.0
+    while not cond():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        log.sample(make_sample(seq, rng), T0_NS + seq * 1_000_000)
+        seq += 1
+        time.sleep(0.002)
+    return seq
+
+
+def test_a_file_deleted_while_written_is_a_fault_copied_back_and_continued(
+        tmp_path: Path) -> None:
+    """`rm -rf logs` under a running log: the writer notices at its next chunk, a new file
+    opens in the re-created directory, and the deleted one, still open, is copied back."""
+    logs, rng, faults = tmp_path / "logs", random.Random(6), []
+    log = RotatingLog(logs, metadata={}, truth=False, chunk_interval_s=0.02,
+                      clock=FakeClock(), on_fault=faults.append)
+    first = log.path
+    assert first is not None
+    seq = _sample_until(log, 0, rng, lambda: log.samples_written >= 20, "20 samples")
+    shutil.rmtree(logs)
+    seq = _sample_until(log, seq, rng, lambda: log.faults == 1, "the deletion to be noticed")
+    seq = _sample_until(log, seq, rng, lambda: first.exists() and log.path != first,
+                        "the copy back and a new file")
+    log.close()
+    assert faults == [f"{first} was deleted while being written (its directory is gone); "
+                      "writing goes on into the open file until a new one is open, then it "
+                      "is copied back"]
+    assert log.healthy and log.dropped == 0 and log.samples_written == seq
+    assert log.faults == 1 and log.last_fault is not None
+    assert log.last_fault.endswith(f"{first.name} was deleted while being written; restored "
+                                   f"from its open descriptor into {first} "
+                                   f"({len(read_log(first).samples['seq'])} samples)")
+    assert sorted(p.name for p in logs.iterdir()) == sorted(p.name for p in log.files)
+    data = read_all(log)
+    assert all(d.complete for d in data)
+    np.testing.assert_array_equal(all_seqs(data), np.arange(seq))
+    assert data[1].events[0]["reason"].startswith(f"rotated ({first} was deleted")
+
+
+def test_a_deleted_file_that_cannot_be_copied_back_is_counted_as_lost(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(LogWriter, "open_deleted", lambda self: None)  # as without /proc
+    logs, rng, faults = tmp_path / "logs", random.Random(7), []
+    log = RotatingLog(logs, metadata={}, truth=False, chunk_interval_s=0.02,
+                      clock=FakeClock(), on_fault=faults.append)
+    first = log.path
+    seq = _sample_until(log, 0, rng, lambda: log.samples_written >= 20, "20 samples")
+    first.unlink()  # the file alone, the directory stays
+    seq = _sample_until(log, seq, rng, lambda: log.path != first, "a new file")
+    for n in range(seq, seq + 5):
+        log.sample(make_sample(n, rng), T0_NS + n * 1_000_000)
+    seq += 5
+    log.close()
+    assert not first.exists()
+    (data,) = read_all(log)
+    lost = int(data.samples["seq"][0])
+    assert log.dropped == lost and log.samples_written == seq - lost
+    assert faults[-1] == (f"{first} was deleted while being written and cannot be restored: "
+                          "no descriptor to read it through (is /proc mounted?); its "
+                          f"{lost} samples are lost")
+    np.testing.assert_array_equal(data.samples["seq"], np.arange(lost, seq))
+
+
+def test_a_rotation_that_fails_is_a_fault_retried_until_a_file_opens(tmp_path: Path) -> None:
+    logs, clock, rng = tmp_path / "logs", FakeClock(), random.Random(8)
+    log = RotatingLog(logs, metadata={}, truth=False, retry_interval_s=5.0, clock=clock)
+    first = log.path
+    log.sample(make_sample(0, rng), T0_NS)
+    real_open = log._open
+    log._open = lambda: "[Errno 13] Permission denied: 'logs'"  # type: ignore[method-assign]
+    with pytest.raises(logrotate.LogError, match=r"cannot start a new log file: \[Errno 13\]"):
+        log.rotate("requested by uid 0")
+    assert not log.healthy and log.faults == 1 and log.path == first
+    assert log.last_error == ("cannot start a new log file: [Errno 13] Permission denied: "
+                              f"'logs'; still writing {first.name}")
+    log.sample(make_sample(1, rng), T0_NS + 1)  # no retry before retry_interval_s
+    assert log.path == first
+    log._open = real_open  # type: ignore[method-assign]
+    clock.t = 5.0
+    log.sample(make_sample(2, rng), T0_NS + 2)
+    wait_for(lambda: log.healthy, "the retry")
+    assert log.faults == 1 and log.last_error is None and log.path != first
+    log.sample(make_sample(3, rng), T0_NS + 3)
+    log.close()
+    data = read_all(log)
+    assert [list(d.samples["seq"]) for d in data] == [[0, 1, 2], [3]]
+    assert data[1].events[0]["reason"].startswith("rotated (retry after: cannot start")
