@@ -14,8 +14,11 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import tomllib
 from collections.abc import Callable, Sequence
 from pathlib import Path
+
+from leveler.persist import write_atomic
 
 SOURCE = Path(__file__).resolve().parents[1]
 UNIT_NAME = "leveler.service"
@@ -183,9 +186,10 @@ def install_service(*, prefix: str = "/opt/leveler", config_dir: str = "/etc/lev
         cdir.mkdir(parents=True, exist_ok=True)
         own(cdir, 0o750)
 
-    def copy_config() -> None:
+    def copy_config() -> None:  # atomic: a crash never leaves a half config to be kept
         lab = (source / "config" / "lab.toml").read_text()
-        config.write_text(lab.replace('group = "leveler"', f'group = "{group}"'))
+        write_atomic(config, lab.replace('group = "leveler"', f'group = "{group}"'),
+                     lambda tmp: tomllib.loads(tmp.read_text()), mode=0o640)
         own(config, 0o640)
 
     # The daemon's user owns the directory: `leveler tune --persist` renames a file into it.
@@ -205,8 +209,7 @@ def install_service(*, prefix: str = "/opt/leveler", config_dir: str = "/etc/lev
     else:
         def write_unit() -> None:
             unit.parent.mkdir(parents=True, exist_ok=True)
-            unit.write_text(text)
-            unit.chmod(0o644)
+            write_atomic(unit, text, lambda tmp: None, mode=0o644)
 
         step(f"unit {unit_dir}/{UNIT_NAME}: written", f"write unit {unit_dir}/{UNIT_NAME}",
              write_unit)

@@ -54,8 +54,11 @@ def set_keys(text: str, section: str, values: dict[str, float]) -> str:
     return "".join(lines)
 
 
-def write_atomic(path: Path, text: str, validate: Callable[[Path], object]) -> None:
-    """Replace `path` by `text` only if `validate(tmpfile)` accepts it; never half-written."""
+def write_atomic(path: Path, text: str, validate: Callable[[Path], object],
+                 mode: int | None = None) -> None:
+    """Replace `path` by `text` only if `validate(tmpfile)` accepts it; never half-written.
+
+    The new file gets `mode` if given, else the mode of the file it replaces (else 0600)."""
     path = Path(path)
     fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     tmp = Path(tmp_name)
@@ -65,7 +68,9 @@ def write_atomic(path: Path, text: str, validate: Callable[[Path], object]) -> N
             fh.flush()
             os.fsync(fh.fileno())
         validate(tmp)
-        if path.exists():
+        if mode is not None:
+            os.chmod(tmp, mode)
+        elif path.exists():
             os.chmod(tmp, path.stat().st_mode & 0o7777)
         os.replace(tmp, path)
         dir_fd = os.open(path.parent, os.O_RDONLY | os.O_DIRECTORY)

@@ -51,3 +51,13 @@ def test_atomic_write_validates_before_replacing(tmp_path: Path) -> None:
     cfg, _ = load_config(path)
     assert cfg.controller.ki_v_per_m_s == 5e5
     assert path.stat().st_mode & 0o777 == 0o640
+
+
+def test_atomic_write_gives_the_mode_asked_for_from_the_start(tmp_path: Path) -> None:
+    path = tmp_path / "unit.service"
+    modes = []
+    write_atomic(path, "[Unit]\n", lambda tmp: modes.append(tmp.stat().st_mode & 0o777),
+                 mode=0o644)
+    assert path.read_text() == "[Unit]\n" and path.stat().st_mode & 0o777 == 0o644
+    assert modes == [0o600]  # while it is written nobody else can read a half file
+    assert list(tmp_path.iterdir()) == [path]

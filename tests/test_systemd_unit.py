@@ -156,6 +156,9 @@ def test_install_into_a_tree_is_idempotent_and_never_overwrites_config(tmp_path:
             unit.stat().st_mode & 0o777) == (0o640, 0o750, 0o644)
     assert "config /etc/leveler/leveler.toml: copied from config/lab.toml" in first
     assert "unit /etc/systemd/system/leveler.service: written" in first
+    # written atomically (a temporary file renamed into place): nothing else left beside them
+    assert [p.name for p in config.parent.iterdir()] == ["leveler.toml"]
+    assert [p.name for p in unit.parent.iterdir()] == ["leveler.service"]
 
     config.write_text("# tuned by the lab\n")
     second = install_service(root=tmp_path, create_user=False, build_venv=False)
