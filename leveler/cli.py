@@ -112,7 +112,9 @@ def _gains(text: str) -> tuple[float, float, float]:
 def _cmd_control(args: argparse.Namespace) -> int:
     from leveler.client import Client, format_status, run_watch
 
-    with Client(args.socket) as client:
+    # reload may load python-control into the daemon first: seconds on a busy machine
+    with (Client(args.socket, timeout_s=60.0 if args.command == "reload" else 5.0)
+          as client, client.reading()):
         if args.command == "status":
             st = client.request("status")["status"]
             if args.json:
@@ -125,6 +127,11 @@ def _cmd_control(args: argparse.Namespace) -> int:
             run_watch(client, args.rate, args.count)
         elif args.command == "rotate":
             print(f"logging to {client.request('rotate')['path']}")
+        elif args.command == "reload":
+            from leveler.client import format_reload
+
+            print(format_reload(client.request("reload", accept_dropped=args.accept_dropped,
+                                               force=args.force)))
         else:
             print(f"state: {client.request(args.command)['state']}")
     return 0
@@ -163,6 +170,22 @@ def _add_control_commands(sub: argparse._SubParsersAction) -> None:  # type: ign
     st.add_argument("--json", action="store_true", help="print the status as one JSON object")
     _add_socket(st)
     st.set_defaults(func=_cmd_control)
+    rl = sub.add_parser(
+        "reload", help="re-read the daemon's config file (as SIGHUP), with its diff",
+        description="Ask the running daemon to re-read its config file, as `systemctl reload "
+        "leveler` (SIGHUP) does, and print what changed. The file is applied only whole: it "
+        "must be valid, set every key the running file set (a file cut short at a line "
+        "boundary is still valid TOML, and its missing keys would take their defaults), and "
+        "new gains must make a loop the plant model predicts stable. [controller] applies at "
+        "once (bumpless); other sections at the next restart. Every applied reload logs its "
+        "diff of effective values (journal and the log's `reload` event).")
+    rl.add_argument("--accept-dropped", action="store_true",
+                    help="apply even though the file no longer sets keys the running one set "
+                    "(they go back to their defaults)")
+    rl.add_argument("--force", action="store_true",
+                    help="apply gains even if the plant model predicts an unstable loop")
+    _add_socket(rl)
+    rl.set_defaults(func=_cmd_control)
     w = sub.add_parser("watch", help="live view of the running loop: values and a small trend",
                        description="Stream samples from the running daemon at a decimated rate "
                        "and show them with a trend of the last 40 sensor readings. Ctrl-C ends "
@@ -176,6 +199,8 @@ def _add_control_commands(sub: argparse._SubParsersAction) -> None:  # type: ign
         description="Change controller settings of the running daemon. Values are checked "
         "before they are applied; gain changes are bumpless (the piezo command does not jump). "
         "--persist also writes them into the daemon's config file (atomically, comments kept). "
+        "New gains that the plant model (python-control) predicts make the loop unstable are "
+        "refused unless --force. "
         "With --suggest, propose gains from the configured plant model (python-control) and "
         "print margins; --apply sends them.")
     t.add_argument("--kp", type=float, help="proportional gain [V/m]")
@@ -183,11 +208,16 @@ def _add_control_commands(sub: argparse._SubParsersAction) -> None:  # type: ign
     t.add_argument("--kd", type=float, help="derivative gain [V s/m]")
     t.add_argument("--setpoint", type=float, help="setpoint of the sensor reading [m] (SI: "
                    "1e-6 is 1 um; refused beyond +-1 mm)")
-    t.add_argument("--min-v", type=float, help="lower output limit [V]")
-    t.add_argument("--max-v", type=float, help="upper output limit [V]")
+    t.add_argument("--min-v", type=float, help="lower output limit [V]; a range that excludes "
+                   "the present output moves the piezo into it at once, at the actuator's own "
+                   "slew limit, not the controller's (--slew): limits protect the hardware, "
+                   "the slew only smooths")
+    t.add_argument("--max-v", type=float, help="upper output limit [V] (as --min-v)")
     t.add_argument("--slew", type=float, help="output slew limit [V/s]; inf: no limit")
     t.add_argument("--persist", action="store_true", help="also write the values to the "
                    "daemon's config file")
+    t.add_argument("--force", action="store_true", help="apply gains even if the plant model "
+                   "predicts an unstable loop (refused otherwise)")
     t.add_argument("--suggest", action="store_true", help="propose gains from the plant model")
     t.add_argument("--bandwidth", type=float, default=None,
                    help="with --suggest: wanted unity-gain frequency [Hz] (default: the highest "

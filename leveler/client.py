@@ -5,13 +5,14 @@ from __future__ import annotations
 import contextlib
 import socket
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import orjson
 
-from leveler.protocol import MAX_LINE_BYTES, VERSION, client_socket_candidates
+from leveler.protocol import MAX_LINE_BYTES, VERSION, client_socket_candidates, socket_problem
 
 
 class ClientError(Exception):
@@ -38,10 +39,13 @@ class Client:
                               "start one with `systemctl start leveler` or "
                               "`leveler run --config FILE`")
         self.path = found
+        why = socket_problem(found)
+        if why is not None:
+            raise ClientError(f"refusing to talk to {found}: {why}; nothing was sent")
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         self._sock.settimeout(timeout_s)
         try:
-            self._sock.connect(str(found))
+            self._connect(found, timeout_s)
         except PermissionError:
             self._sock.close()
             raise ClientError(f"access denied to {found}: the daemon's group may use it; "
@@ -51,6 +55,21 @@ class Client:
             raise ClientError(f"no daemon is listening on {found} (left behind by one that "
                               "stopped?)") from None
         self._reader = self._sock.makefile("rb")
+
+    def _connect(self, path: Path, timeout_s: float) -> None:
+        """connect(), retried while the daemon's queue of pending connections is full
+        (a Unix socket then says EAGAIN at once rather than waiting)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                self._sock.connect(str(path))
+                return
+            except BlockingIOError:
+                if time.monotonic() >= deadline:
+                    self._sock.close()
+                    raise ClientError(f"the daemon on {path} is busy (its queue of pending "
+                                      "connections stayed full); try later") from None
+                time.sleep(0.05)
 
     def close(self) -> None:
         with contextlib.suppress(OSError):
@@ -72,10 +91,28 @@ class Client:
             raise ClientError(f"reading from {self.path} failed: {exc}") from None
         if not line:
             raise ClientError(f"the daemon on {self.path} closed the connection")
-        reply = orjson.loads(line)
+        try:
+            reply = orjson.loads(line)
+        except orjson.JSONDecodeError:
+            raise ClientError(f"{self.path} answered something that is not JSON: not a "
+                              "leveler daemon?") from None
+        if not isinstance(reply, dict):
+            raise ClientError(f"{self.path} answered a JSON {type(reply).__name__}, not an "
+                              "object: not a leveler daemon?")
         if not reply.get("ok", False):
-            raise ClientError(reply.get("error", "request refused"))
+            raise ClientError(str(reply.get("error", "request refused")))
         return reply
+
+    @contextlib.contextmanager
+    def reading(self) -> Iterator[None]:
+        """Around code that reads a reply's fields: a reply without them (another program,
+        or another version, on the socket) is one line, not a traceback."""
+        try:
+            yield
+        except (KeyError, TypeError, ValueError, AttributeError, IndexError) as exc:
+            raise ClientError(f"the daemon on {self.path} sent a reply this leveler cannot "
+                              f"read ({type(exc).__name__}: {exc}): another version, or not "
+                              "a leveler daemon?") from None
 
     def request(self, verb: str, **args: Any) -> dict[str, Any]:
         """Send one request and return the daemon's (successful) reply."""
@@ -139,8 +176,11 @@ def _driver_errors(counts: dict[str, int] | None) -> str:
 def _log_line(log: dict[str, Any]) -> str:
     where = log["path"] if log["path"] else "no file open (logging is down; retrying)"
     health = "healthy" if log["healthy"] else f"FAULT: {log['error']}"
+    faults = log.get("faults", 0)  # a daemon older than the count has none
     return (f"log         {where}, {log['samples_written']} samples, {health}"
-            + (f", {log['dropped']} dropped" if log["dropped"] else ""))
+            + (f", {log['dropped']} dropped" if log["dropped"] else "")
+            + (f"\n            {faults} log fault(s) since start; last: {log['last_fault']}"
+               if faults else ""))
 
 
 def format_status(st: dict[str, Any]) -> str:
@@ -174,6 +214,21 @@ def format_status(st: dict[str, Any]) -> str:
         f"{lp['period_max_s'] * 1e3:.2f} ms, overruns {lp['overruns']}",
         _log_line(log),
     ]
+    return "\n".join(lines)
+
+
+def format_reload(reply: dict[str, Any]) -> str:
+    """What a reload changed, one effective value a line; sections that wait for a restart."""
+    changed = reply["changed"]
+    lines = [f"reload applied: {len(changed)} value(s) changed"
+             + (":" if changed else " (the file says what the daemon runs)")]
+    lines += [f"  {key}: {old!r} -> {new!r}" for key, (old, new) in changed.items()]
+    if reply["dropped"]:
+        lines.append("back to their defaults (no longer in the file): "
+                     + ", ".join(reply["dropped"]))
+    if reply["needs_restart"]:
+        lines.append("takes effect at the next restart: ["
+                     + "], [".join(reply["needs_restart"]) + "]")
     return "\n".join(lines)
 
 

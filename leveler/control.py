@@ -1,12 +1,16 @@
 """The control socket server: transport and access control, nothing about leveling.
 
-A Unix stream socket, mode 0660 and owned by the configured group; every connection's
-peer credentials (SO_PEERCRED) are checked as well, because a file mode is easy to loosen
-by accident. One thread per connection (bounded by max_clients) reads line-delimited JSON
-requests and hands them to a `Handler`; a malformed request gets an error line back and the
-daemon carries on. A client holds its slot only while it keeps up: each request must be
-complete within idle_timeout_s of the last (a byte a second does not keep a slot), and a
-watcher must read its stream.
+A Unix stream socket, mode 0660 and owned by the configured group, in a directory only the
+daemon's user (or root) can write, as ssh-agent and tmux insist; every connection's peer
+credentials (SO_PEERCRED) are checked as well, because a file mode is easy to loosen by
+accident. A refused peer is answered and closed by the accepting thread at once: it never
+holds a slot, and its `access` event is rate-limited. One thread per accepted connection
+(bounded by max_clients, and by max_clients_per_uid for any uid but root's and the daemon's
+own) reads line-delimited JSON requests and hands them to a `Handler`; a malformed request
+gets an error line back and the daemon carries on. A client holds its slot only while it
+keeps up: each request must be complete within idle_timeout_s of the last (a byte a second
+does not keep a slot), a reply must be read within idle_timeout_s, and a watcher must read
+its stream; a watcher that hangs up is noticed while the server waits, not at its next send.
 """
 
 from __future__ import annotations
@@ -17,21 +21,30 @@ import grp
 import io
 import logging
 import os
+import select
 import socket
 import struct
 import threading
 import time
-from collections.abc import Iterator
+from collections import Counter
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
 from leveler.errors import ControlError
-from leveler.protocol import MAX_LINE_BYTES, ProtocolError, encode, parse_request
+from leveler.protocol import (
+    MAX_LINE_BYTES,
+    ProtocolError,
+    encode,
+    parse_request,
+    untrusted_socket_dir,
+)
 from leveler.rt import demote_thread
 
 _log = logging.getLogger(__name__)
 _UCRED = struct.Struct("3i")
+REFUSAL_REPORT_S = 10.0  # at most one `access` event per uid in this time; the rest counted
 
 
 @dataclass(frozen=True)
@@ -41,12 +54,16 @@ class Peer:
     gid: int
 
 
+#: waits up to the given seconds; False if the client has gone (or the server is closing)
+Wait = Callable[[float], bool]
+
+
 class Handler(Protocol):
     def handle(self, req: dict[str, Any], peer: Peer) -> dict[str, Any]: ...
 
-    def watch(self, req: dict[str, Any]) -> Iterator[dict[str, Any]]: ...
+    def watch(self, req: dict[str, Any], wait: Wait) -> Iterator[dict[str, Any]]: ...
 
-    def refused(self, peer: Peer, why: str) -> None: ...
+    def refused(self, peer: Peer, why: str, repeats: int) -> None: ...
 
 
 def peer_of(conn: socket.socket) -> Peer:
@@ -105,14 +122,27 @@ class _Deadline(io.RawIOBase):
         return self._conn.recv_into(buf)
 
 
-def _linger(conn: socket.socket) -> None:
-    """Let a refused client finish sending before we close, so it reads our answer
-    instead of failing its send with EPIPE."""
-    conn.shutdown(socket.SHUT_WR)
-    conn.settimeout(1.0)
-    with contextlib.suppress(OSError):
-        while conn.recv(65536):
-            pass
+def _answer_and_close(conn: socket.socket, message: str) -> None:
+    """Refuse a connection at once, without ever blocking the accepting thread: the answer
+    goes into an empty socket buffer, and a client that sent its request first still reads
+    it after our close (the CLI also reads it if its send fails)."""
+    with conn, contextlib.suppress(OSError):
+        conn.setblocking(False)
+        conn.send(encode({"ok": False, "error": message}))
+
+
+def claim_socket_dir(path: Path) -> None:
+    """Make the socket's directory if need be; ControlError unless it is the daemon user's
+    (or root's) and writable by no one else: whoever can write it can swap the socket."""
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True, mode=0o750)
+        why = untrusted_socket_dir(path.parent, {os.geteuid(), 0})
+    except OSError as exc:
+        raise ControlError(f"control socket {path}: {exc.strerror or exc} (set [control] "
+                           "socket_path to a writable place)") from None
+    if why is not None:
+        raise ControlError(f"control socket {path}: refusing its directory: {why}; remove it, "
+                           "or set [control] socket_path to a directory of this user's own")
 
 
 def refuse_if_served(path: Path) -> bool:
@@ -138,13 +168,17 @@ class ControlServer:
     """Listens on `path`; serves until close()."""
 
     def __init__(self, path: Path, handler: Handler, *, gid: int, max_clients: int = 16,
-                 idle_timeout_s: float = 60.0) -> None:
+                 max_clients_per_uid: int = 8, idle_timeout_s: float = 60.0) -> None:
         self.path = path
         self._handler = handler
         self._gid = gid
         self._uid = os.geteuid()
-        self._slots = threading.BoundedSemaphore(max_clients)
+        self._max = max_clients
+        self._max_per_uid = max_clients_per_uid
         self._idle = idle_timeout_s
+        self._lock = threading.Lock()
+        self._served: Counter[int] = Counter()  # uid -> connections being served
+        self._refusals: dict[int, tuple[float, int]] = {}  # uid -> (last report, since then)
         self._sock: socket.socket | None = None
         self._thread: threading.Thread | None = None
         self._closing = threading.Event()
@@ -163,7 +197,7 @@ class ControlServer:
                                "(set [control] socket_path to a writable place)") from None
 
     def _bind(self) -> None:
-        self.path.parent.mkdir(parents=True, exist_ok=True, mode=0o750)
+        claim_socket_dir(self.path)
         if refuse_if_served(self.path):
             self.path.unlink()  # left behind by a daemon that died
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_CLOEXEC)
@@ -201,25 +235,50 @@ class ControlServer:
                 conn, _ = self._sock.accept()
             except OSError:
                 return
-            if not self._slots.acquire(blocking=False):
-                with contextlib.suppress(OSError):
-                    conn.sendall(encode({"ok": False, "error": "too many clients; try later"}))
+            try:
+                peer = peer_of(conn)
+            except OSError:  # gone already
                 conn.close()
                 continue
-            threading.Thread(target=self._serve, args=(conn,), name="control-client",
+            refusal = self._admit(peer, conn)
+            if refusal is not None:
+                _answer_and_close(conn, refusal)
+                continue
+            threading.Thread(target=self._serve, args=(conn, peer), name="control-client",
                              daemon=True).start()
 
-    def _serve(self, conn: socket.socket) -> None:
+    def _admit(self, peer: Peer, conn: socket.socket) -> str | None:
+        """Why `peer` is turned away, or None after taking a slot for it."""
+        if not self.allowed(peer, conn):
+            why = (f"access denied: uid {peer.uid} is not root, the daemon's user or a member "
+                   f"of group {self._gid}")
+            self._report_refusal(peer, why)
+            return why
+        with self._lock:
+            if sum(self._served.values()) >= self._max:
+                return "too many clients; try later"
+            if (peer.uid not in (0, self._uid)
+                    and self._served[peer.uid] >= self._max_per_uid):
+                return (f"too many connections from uid {peer.uid} (at most "
+                        f"{self._max_per_uid} at once); try later")
+            self._served[peer.uid] += 1
+        return None
+
+    def _report_refusal(self, peer: Peer, why: str) -> None:
+        """At most one report per uid every REFUSAL_REPORT_S, with the count it stood for:
+        a refused peer that reconnects in a loop must not flood the journal and the log."""
+        now = time.monotonic()
+        with self._lock:
+            last, since = self._refusals.get(peer.uid, (-float("inf"), 0))
+            if now - last < REFUSAL_REPORT_S:
+                self._refusals[peer.uid] = (last, since + 1)
+                return
+            self._refusals[peer.uid] = (now, 0)
+        self._handler.refused(peer, why, since)
+
+    def _serve(self, conn: socket.socket, peer: Peer) -> None:
         try:
             with conn:
-                peer = peer_of(conn)
-                if not self.allowed(peer, conn):
-                    why = (f"access denied: uid {peer.uid} is not root, the daemon's user or "
-                           f"a member of group {self._gid}")
-                    self._handler.refused(peer, why)
-                    conn.sendall(encode({"ok": False, "error": why}))
-                    _linger(conn)
-                    return
                 raw = _Deadline(conn)
                 reader = io.BufferedReader(raw)
                 while not self._closing.is_set():
@@ -246,7 +305,31 @@ class ControlServer:
         except (OSError, TimeoutError):
             return  # client went away or stalled past the idle timeout
         finally:
-            self._slots.release()
+            with self._lock:
+                self._served[peer.uid] -= 1
+                if not self._served[peer.uid]:
+                    del self._served[peer.uid]
+
+    def _wait(self, conn: socket.socket, seconds: float) -> bool:
+        """Wait up to `seconds` (at most idle_timeout_s) between a watch's lines; False as
+        soon as the client hangs up or the server closes. What a watcher sends meanwhile is
+        read and dropped (the protocol gives a watch no further requests)."""
+        deadline = time.monotonic() + min(seconds, self._idle)
+        poller = select.poll()
+        poller.register(conn, select.POLLIN | select.POLLHUP | select.POLLERR)
+        while not self._closing.is_set():
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return True
+            if poller.poll(min(left, 0.5) * 1000):
+                try:
+                    if not conn.recv(4096, socket.MSG_DONTWAIT):
+                        return False  # EOF: the client has gone
+                except BlockingIOError:
+                    pass
+                except OSError:
+                    return False
+        return False
 
     def _answer(self, conn: socket.socket, line: bytes, peer: Peer) -> bool:
         """Serve one request; False ends the connection (after a watch)."""
@@ -255,9 +338,7 @@ class ControlServer:
             if req["verb"] == "watch":
                 conn.sendall(encode({"ok": True, "watching": True}))
                 try:  # a watcher that stops reading for idle_timeout_s is dropped
-                    for item in self._handler.watch(req):
-                        if self._closing.is_set():
-                            break
+                    for item in self._handler.watch(req, lambda s: self._wait(conn, s)):
                         conn.sendall(encode(item))
                 except OSError:
                     pass  # the watcher left (or stalled): not an error of the daemon's

@@ -3,12 +3,14 @@
 The loop thread owns the drivers, the PID and the log. Everything else reaches it through
 `call` (control-socket verbs, run between cycles) or flags (signals), so no lock is ever
 taken on the hot path. SIGINT/SIGTERM end the loop between cycles; whatever ends it, the
-actuator is made safe and the log finished. SIGHUP reloads the config: a file that fails
-validation is rejected, logged, and the running config kept.
+actuator is made safe and the log finished. SIGHUP (or the `reload` verb) reloads the
+config: a file that fails validation, drops keys the running file set (cut short?) or sets
+gains the plant model predicts unstable is rejected, logged, and the running config kept.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import faulthandler
 import logging
@@ -29,17 +31,40 @@ from typing import Any
 from leveler import __version__
 from leveler.clock import RealtimeClock
 from leveler.config import ConfigError
-from leveler.control import ControlServer, Peer, refuse_if_served, resolve_group
+from leveler.control import (
+    ControlServer,
+    Peer,
+    Wait,
+    claim_socket_dir,
+    refuse_if_served,
+    resolve_group,
+)
 from leveler.drivers.base import DriverError, Status
+from leveler.errors import LogError
 from leveler.logrotate import RotatingLog
 from leveler.loop import ENGAGED, FAULT, IDLE, MODULATING, Loop
 from leveler.modulation import SquareWave
 from leveler.notify import Notifier
 from leveler.persist import set_keys, write_atomic
 from leveler.pid import PID, PIDGains
-from leveler.protocol import ProtocolError, default_socket_path, modulate_args, tune_args
-from leveler.rt import freeze_heap, lock_memory, scheduler
-from leveler.settings import ControllerConfig, check_tune_values, load_config
+from leveler.protocol import (
+    ProtocolError,
+    bool_arg,
+    default_socket_path,
+    modulate_args,
+    reload_args,
+    tune_args,
+)
+from leveler.rt import demote_thread, freeze_heap, lock_memory, scheduler
+from leveler.settings import (
+    Config,
+    ControllerConfig,
+    check_tune_values,
+    config_diff,
+    explicit_keys,
+    load_config,
+)
+from leveler.sim.params import PlantParams
 from leveler.stand import Stand, open_stand
 
 _log = logging.getLogger("leveler")
@@ -64,6 +89,8 @@ class Daemon:
     def __init__(self, config_path: str | Path, duration_s: float | None = None) -> None:
         self.config_path = Path(config_path)
         self.cfg, text = load_config(self.config_path)
+        self._keys = explicit_keys(text)  # what the running file sets itself
+        self._config_lock = threading.Lock()  # one reload or persist at a time
         self.duration_s = duration_s
         self.stop_reason = ""
         self._reload_requested = False
@@ -80,7 +107,8 @@ class Daemon:
         except KeyError as exc:
             raise ConfigError(f"{self.config_path}: {exc.args[0]}") from None
         self.socket_path = Path(self.cfg.control.socket_path or default_socket_path())
-        refuse_if_served(self.socket_path)  # before any device is opened or log created
+        claim_socket_dir(self.socket_path)  # before any device is opened or log created
+        refuse_if_served(self.socket_path)
         self.stand: Stand = open_stand(self.cfg)
         self.stand.connect()
         metadata = {"config": text, "config_path": str(self.config_path.resolve()),
@@ -110,6 +138,7 @@ class Daemon:
         self._reported_step_ns = 0
         self.server = ControlServer(self.socket_path, self, gid=self.gid,
                                     max_clients=self.cfg.control.max_clients,
+                                    max_clients_per_uid=self.cfg.control.max_clients_per_uid,
                                     idle_timeout_s=self.cfg.control.idle_timeout_s)
 
     # ---- called from other threads -------------------------------------------------
@@ -128,9 +157,13 @@ class Daemon:
         """Queue an event for the log from any thread; the loop thread writes it."""
         self._pending_events.append((kind, reason, detail))
 
-    def refused(self, peer: Peer, why: str) -> None:
-        _log.warning("control: refused pid %d uid %d: %s", peer.pid, peer.uid, why)
-        self.note("access", "refused", uid=peer.uid, gid=peer.gid, pid=peer.pid)
+    def refused(self, peer: Peer, why: str, repeats: int) -> None:
+        """A refused connection (rate-limited by the server: `repeats` more were not reported
+        since the last report for this uid)."""
+        more = f" ({repeats} more refusals of this uid since the last report)" if repeats else ""
+        _log.warning("control: refused pid %d uid %d: %s%s", peer.pid, peer.uid, why, more)
+        self.note("access", "refused", uid=peer.uid, gid=peer.gid, pid=peer.pid,
+                  unreported_before=repeats)
 
     def _log_fault(self, message: str) -> None:
         _log.error("log: %s", message)
@@ -147,7 +180,13 @@ class Daemon:
         if verb == "reset":
             return {"ok": True, "state": self.call(lambda t: self._reset(t, who))}
         if verb == "rotate":
-            path = self.log.rotate(f"requested by {who}")  # thread-safe; keeps I/O off the loop
+            try:  # thread-safe; keeps I/O off the loop
+                path = self.log.rotate(f"requested by {who}")
+            except LogError as exc:  # a log fault (status shows it), not a daemon error
+                where = f"still writing {self.log.path}" if self.log.path else "logging is down"
+                raise ProtocolError(f"rotate failed: {exc}; {where} (a log fault in `leveler "
+                                    f"status`; a new file is tried every "
+                                    f"{self.cfg.log.retry_interval_s:g} s)") from None
             return {"ok": True, "path": str(path)}
         if verb == "modulate":
             amplitude_v, period_s, cycles, force = modulate_args(req)
@@ -156,15 +195,69 @@ class Daemon:
         if verb == "tune":
             values, persist = tune_args(req)
             new = self._validated(values)
+            if not bool_arg(req, "tune", "force"):
+                try:
+                    self._refuse_unstable(self.cfg.plant, self.cfg.controller, new)
+                except ProtocolError as exc:
+                    raise ProtocolError(f"tune: {exc}") from None
             self.call(lambda t: self._apply_controller(new, t, f"tune by {who}"))
             if persist:
                 self._persist(values)
             return {"ok": True, "controller": dataclasses.asdict(new), "persisted": persist}
+        if verb == "reload":
+            accept_dropped, force = reload_args(req)
+            return {"ok": True, **self.reload(who, accept_dropped=accept_dropped, force=force)}
         raise ProtocolError(f"verb {verb!r} is not served here")
 
-    def watch(self, req: dict[str, Any]) -> Iterator[dict[str, Any]]:
+    def reload(self, who: str, *, accept_dropped: bool = False,
+               force: bool = False) -> dict[str, Any]:
+        """Re-read the config file and apply it only if it is whole: valid, setting every key
+        the running file set (unless `accept_dropped`), and with gains the plant model
+        predicts stable (unless `force`). Runs off the loop thread (parsing, python-control);
+        the change is applied between two cycles. A refusal is logged and raised."""
+        with self._config_lock:
+            try:
+                new, text = load_config(self.config_path)
+                dropped = sorted(self._keys - explicit_keys(text))
+                if dropped and not accept_dropped:
+                    named = ", ".join(dropped[:12]) + (f" and {len(dropped) - 12} more"
+                                                       if len(dropped) > 12 else "")
+                    raise ProtocolError(
+                        f"{self.config_path} no longer sets {len(dropped)} key(s) the running "
+                        f"config set: {named} (a file cut short?); they would take their "
+                        "defaults. To mean that: leveler reload --accept-dropped")
+                if not force:
+                    self._refuse_unstable(new.plant, self.cfg.controller, new.controller)
+            except (ConfigError, ProtocolError) as exc:
+                _log.error("reload rejected, keeping the running config: %s", exc)
+                self.note("reload", f"rejected: {exc}", by=who)
+                raise ProtocolError(f"reload rejected, the running config is kept: {exc}"
+                                    ) from None
+            try:
+                return self.call(lambda t: self._apply_reload(new, text, t, who, dropped))
+            except ProtocolError as exc:  # the loop did not answer: say so in the journal
+                _log.error("reload (%s): %s", who, exc)
+                raise
+
+    def _refuse_unstable(self, plant: PlantParams, old: ControllerConfig,
+                         new: ControllerConfig) -> None:
+        """ProtocolError if `new` changes the loop's gains to ones the plant model predicts
+        unstable at the running rate (a setpoint or limit change is never refused here)."""
+        gains = ("kp_v_per_m", "ki_v_per_m_s", "kd_v_s_per_m", "d_filter_tau_s")
+        if all(getattr(old, k) == getattr(new, k) for k in gains):
+            return
+        from leveler.suggest import predicted_instability  # python-control: off the loop
+
+        why = predicted_instability(plant, self.cfg.loop.rate_hz, new.kp_v_per_m,
+                                    new.ki_v_per_m_s, new.kd_v_s_per_m, new.d_filter_tau_s)
+        if why is not None:
+            raise ProtocolError(f"{why}; nothing applied (check the margins with `leveler "
+                                "tune --suggest`, or --force to apply anyway)")
+
+    def watch(self, req: dict[str, Any], wait: Wait) -> Iterator[dict[str, Any]]:
         """Samples at a decimated rate (default 10 Hz) until the client leaves; rate_hz was
-        checked by protocol.parse_request."""
+        checked by protocol.parse_request. `wait` notices a client that hangs up, and the
+        server caps it at idle_timeout_s, so even rate_hz 1e-6 cannot hold a slot."""
         period = max(1.0 / float(req.get("rate_hz", 10.0)), self.dt)
         last_seq = -1
         while not self.stop_reason:
@@ -172,7 +265,8 @@ class Daemon:
             if s is not None and s.seq != last_seq:
                 last_seq = s.seq
                 yield {"sample": s}
-            time.sleep(period)
+            if not wait(period):
+                return
 
     def status(self) -> dict[str, Any]:
         """Served from the control thread, so it answers while the loop hangs in a device
@@ -201,7 +295,8 @@ class Daemon:
                      "stalled": age_s > max(STALL_AFTER_S, 10 * self.dt), **stats},
             "log": {"path": str(self.log.path) if self.log.path else None,
                     "samples_written": self.log.samples_written, "dropped": self.log.dropped,
-                    "healthy": self.log.healthy, "error": self.log.last_error},
+                    "healthy": self.log.healthy, "error": self.log.last_error,
+                    "faults": self.log.faults, "last_fault": self.log.last_fault},
         }
 
     # ---- run on the loop thread ----------------------------------------------------
@@ -329,33 +424,37 @@ class Daemon:
             self.loop.emit("tune", reason, t, **changed)
 
     def _persist(self, values: dict[str, float]) -> None:
-        text = set_keys(self.config_path.read_text(), "controller", values)
-        try:
-            write_atomic(self.config_path, text, load_config)
-        except (OSError, ConfigError) as exc:
-            raise ProtocolError(f"tune applied, but not persisted: {exc}") from None
+        with self._config_lock:
+            try:
+                text = set_keys(self.config_path.read_text(), "controller", values)
+                write_atomic(self.config_path, text, load_config)
+            except (OSError, ConfigError) as exc:
+                raise ProtocolError(f"tune applied, but not persisted: {exc}") from None
+            self._keys |= explicit_keys(text)
         self.note("persist", "controller written to config", path=str(self.config_path),
                   **values)
 
-    def _reload(self, t: float) -> None:
-        self._reload_requested = False
-        try:
-            new, _ = load_config(self.config_path)
-        except ConfigError as exc:
-            _log.error("reload rejected, keeping the running config: %s", exc)
-            self.loop.emit("reload", f"rejected: {exc}", t)
-            return
+    def _apply_reload(self, new: Config, text: str, t: float, who: str,
+                      dropped: list[str]) -> dict[str, Any]:
+        """Apply a checked config: [controller] at once (bumpless), the status interval too;
+        the rest is reported as needing a restart. Logs the diff of effective values."""
+        diff = {k: list(v) for k, v in config_diff(self.cfg, new).items()}
         live_loop = dataclasses.replace(new.loop, status_interval_s=self.cfg.loop.status_interval_s)
         restart = ["loop"] if live_loop != self.cfg.loop else []
         restart += [name for name in ("log", "control", "sensor", "actuator", "plant", "sim")
                     if getattr(new, name) != getattr(self.cfg, name)]
-        self._apply_controller(new.controller, t, "reload (SIGHUP)")
+        self._apply_controller(new.controller, t, f"reload ({who})")
         self.cfg = dataclasses.replace(self.cfg, loop=dataclasses.replace(
             self.cfg.loop, status_interval_s=new.loop.status_interval_s))
-        self.loop.emit("reload", "applied", t, needs_restart=restart)
+        self._keys = explicit_keys(text)
+        self.loop.emit("reload", "applied", t, by=who, changed=diff, needs_restart=restart,
+                       dropped=dropped)
+        _log.info("reload (%s) applied: %s", who, "; ".join(
+            f"{k} {old!r} -> {value!r}" for k, (old, value) in diff.items()) or "no change")
         if restart:
             _log.warning("reload: changes to [%s] take effect at the next restart",
                          "], [".join(restart))
+        return {"changed": diff, "needs_restart": restart, "dropped": dropped}
 
     def _drain(self, t: float) -> None:
         while self._pending_events:
@@ -421,8 +520,10 @@ class Daemon:
             while not self.stop_reason and (self.duration_s is None or t < self.duration_s):
                 t = clock.tick()
                 self._drain(t)
-                if self._reload_requested:
-                    self._reload(t)
+                if self._reload_requested:  # parsing and checks off the loop thread
+                    self._reload_requested = False
+                    threading.Thread(target=self._reload_on_signal, name="reload",
+                                     daemon=True).start()
                 s = loop.cycle(t, clock.wall_ns(t))
                 now = self.last_cycle_mono = time.monotonic()
                 if loop.state == FAULT:
@@ -488,9 +589,15 @@ class Daemon:
     def _on_hup(self, signum: int, frame: FrameType | None) -> None:
         self._reload_requested = True
 
+    def _reload_on_signal(self) -> None:
+        demote_thread()  # started by the loop thread: not at its real-time priority
+        with contextlib.suppress(ProtocolError):  # reload() logged why
+            self.reload("SIGHUP")
+
 
 def run_daemon(config_path: str | Path, duration_s: float | None = None) -> int:
     faulthandler.enable()  # a watchdog SIGABRT then leaves every thread's stack in the journal
+    os.umask(0o027)  # logs readable by the daemon's group, by no one else: whoever starts it
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format="%(levelname)s %(name)s: %(message)s")
     # The Modbus driver reports every failure itself (driver_error events, `status`); the

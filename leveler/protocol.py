@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import stat
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +23,7 @@ import orjson
 
 VERSION = 1
 MAX_LINE_BYTES = 64 * 1024
-VERBS = ("status", "start", "stop", "tune", "watch", "rotate", "reset", "modulate")
+VERBS = ("status", "start", "stop", "tune", "watch", "rotate", "reset", "modulate", "reload")
 #: verbs that take no arguments: any other key is a mistake, refused rather than ignored
 NO_ARGS = ("status", "start", "stop", "rotate", "reset")
 MAX_WATCH_HZ = 1000.0
@@ -63,6 +64,53 @@ def default_socket_path(env: dict[str, str] | None = None, uid: int | None = Non
     if env.get("XDG_RUNTIME_DIR"):
         return Path(env["XDG_RUNTIME_DIR"]) / "leveler" / "control.sock"
     return Path(f"/tmp/leveler-{uid}/control.sock")
+
+
+def untrusted_socket_dir(directory: Path, trusted_uids: set[int]) -> str | None:
+    """Why a socket in `directory` may not be the one it claims to be, or None.
+
+    Whoever can write a socket's directory can swap the socket for their own and read what
+    clients send it; so, as ssh-agent and tmux insist, the directory must be owned by a
+    trusted uid and writable by no one else (an attacker can make `/tmp/leveler-<uid>`
+    before the daemon does)."""
+    st = os.stat(directory)
+    if not stat.S_ISDIR(st.st_mode):
+        return f"{directory} is not a directory"
+    if st.st_uid not in trusted_uids:
+        return (f"{directory} belongs to uid {st.st_uid}, not to "
+                + " or ".join(f"uid {u}" for u in sorted(trusted_uids))
+                + ": someone else may have made it to plant their own socket")
+    if st.st_mode & 0o022:
+        who = "anyone" if st.st_mode & 0o002 else "its group"
+        return (f"{directory} is writable by {who} (mode {stat.S_IMODE(st.st_mode):04o}), who "
+                "could replace the socket")
+    return None
+
+
+def socket_problem(path: Path) -> str | None:
+    """Why a client should not talk to the socket at `path`, or None: the directory and
+    socket must belong to root, to us, or to a system user whose directory only root could
+    have made (the service's /run/leveler, made by systemd under root-owned /run)."""
+    me = os.geteuid()
+    trusted = {0, me}
+    directory = path.parent
+    try:
+        st = os.stat(path)
+        owner = os.stat(directory).st_uid
+        if owner not in trusted and untrusted_socket_dir(directory.parent, {0}) is None:
+            trusted.add(owner)  # a directory only root could have created: the service's
+        why = untrusted_socket_dir(directory, trusted)
+    except PermissionError:
+        return None  # we cannot reach it at all: connect() will say so
+    except FileNotFoundError:
+        return None
+    if why is not None:
+        return why
+    if not stat.S_ISSOCK(st.st_mode):
+        return f"{path} is not a socket"
+    if st.st_uid not in trusted:
+        return f"{path} belongs to uid {st.st_uid}, not to the owner of {directory}"
+    return None
 
 
 def client_socket_candidates(env: dict[str, str] | None = None) -> list[Path]:
@@ -143,7 +191,7 @@ def _check_watch(req: dict[str, Any]) -> None:
 
 def tune_args(req: dict[str, Any]) -> tuple[dict[str, float], bool]:
     """The numeric settings of a tune request, type- and sign-checked, and its persist flag."""
-    extra = sorted(set(req) - set(TUNE_KEYS) - {"v", "verb", "persist"})
+    extra = sorted(set(req) - set(TUNE_KEYS) - {"v", "verb", "persist", "force"})
     if extra:
         raise ProtocolError(f"tune: unknown key {extra[0]!r}; keys: {', '.join(TUNE_KEYS)}")
     values: dict[str, float] = {}
@@ -172,12 +220,28 @@ def tune_args(req: dict[str, Any]) -> tuple[dict[str, float], bool]:
             f"tune: setpoint_m {values['setpoint_m']:g} m is not a plausible sensor reading: "
             f"it must lie within +-{SETPOINT_BOUND_M:g} m (the sensor reads micrometres; "
             "units are SI, so 1 um is 1e-6)")
-    persist = req.get("persist", False)
-    if not isinstance(persist, bool):
-        raise ProtocolError(f"tune: persist must be true or false, got {persist!r}")
+    persist = bool_arg(req, "tune", "persist")
+    bool_arg(req, "tune", "force")
     if not values:
         raise ProtocolError(f"tune: nothing to change; keys: {', '.join(TUNE_KEYS)}")
     return values, persist
+
+
+def bool_arg(req: dict[str, Any], verb: str, key: str) -> bool:
+    """An optional true/false argument (false if absent); 1, "yes" or null are refused."""
+    value = req.get(key, False)
+    if not isinstance(value, bool):
+        raise ProtocolError(f"{verb}: {key} must be true or false, got {value!r}")
+    return value
+
+
+def reload_args(req: dict[str, Any]) -> tuple[bool, bool]:
+    """accept_dropped (keys the running file set may go back to their defaults) and force
+    (apply gains the plant model predicts unstable) of a reload request."""
+    extra = sorted(set(req) - {"v", "verb", "accept_dropped", "force"})
+    if extra:
+        raise ProtocolError(f"reload: unknown key {extra[0]!r}; keys: accept_dropped, force")
+    return bool_arg(req, "reload", "accept_dropped"), bool_arg(req, "reload", "force")
 
 
 def modulate_args(req: dict[str, Any]) -> tuple[float, float, int, bool]:
@@ -196,10 +260,7 @@ def modulate_args(req: dict[str, Any]) -> tuple[float, float, int, bool]:
     cycles = req.get("cycles", 1)
     if isinstance(cycles, bool) or not isinstance(cycles, int) or not 1 <= cycles <= 10_000:
         raise ProtocolError(f"modulate: cycles must be an integer in 1..10000, got {cycles!r}")
-    force = req.get("force", False)
-    if not isinstance(force, bool):
-        raise ProtocolError(f"modulate: force must be true or false, got {force!r}")
-    return out[0], out[1], cycles, force
+    return out[0], out[1], cycles, bool_arg(req, "modulate", "force")
 
 
 def encode(obj: dict[str, Any]) -> bytes:

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from leveler.config import ConfigError, build, load_toml, non_negative, positive
 from leveler.drivers.modbus_config import ModbusActuatorConfig, ModbusSensorConfig
@@ -40,6 +42,8 @@ class ControlConfig:
     socket_path: str = ""
     group: str = ""
     max_clients: int = field(default=16, metadata={"ge": 1, "le": 1024})
+    # any uid but root's and the daemon's own: one user cannot lock the others out
+    max_clients_per_uid: int = field(default=8, metadata={"ge": 1, "le": 1024})
     idle_timeout_s: float = positive(60.0)
 
 
@@ -234,3 +238,39 @@ def load_config(path: str | Path) -> tuple[Config, str]:
     except ValueError as exc:
         raise ConfigError(f"{path}: controller.{exc}") from None
     return cfg, path.read_text()
+
+
+def explicit_keys(text: str) -> frozenset[str]:
+    """The dotted keys a config file sets itself (an array of tables, `[[sim.faults]]`, is
+    one key). A reload compares these: a file that no longer sets what the running one set
+    was most likely cut short, and its missing keys would silently take their defaults."""
+    def walk(table: dict[str, Any], prefix: str) -> list[str]:
+        keys = []
+        for name, value in table.items():
+            if isinstance(value, dict):
+                keys += walk(value, f"{prefix}{name}.")
+            else:
+                keys.append(f"{prefix}{name}")
+        return keys
+
+    return frozenset(walk(tomllib.loads(text), ""))
+
+
+def effective_values(cfg: Config) -> dict[str, Any]:
+    """Every setting of `cfg` by dotted key, defaults included: what a reload diff shows."""
+    def walk(obj: Any, prefix: str) -> dict[str, Any]:
+        if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+            out: dict[str, Any] = {}
+            for f in dataclasses.fields(obj):
+                out |= walk(getattr(obj, f.name), f"{prefix}{f.name}.")
+            return out
+        return {prefix[:-1]: obj}
+
+    return walk(cfg, "")
+
+
+def config_diff(old: Config, new: Config) -> dict[str, tuple[Any, Any]]:
+    """dotted key -> (old, new) for every effective value that differs."""
+    a, b = effective_values(old), effective_values(new)
+    return {k: (a.get(k), b.get(k)) for k in sorted(a.keys() | b.keys())
+            if a.get(k) != b.get(k)}

@@ -40,11 +40,13 @@ def run_tune_command(args: argparse.Namespace) -> int:
     if not values:
         raise ClientError("nothing to change: give --kp, --ki, --kd, --setpoint, --min-v, "
                           "--max-v or --slew (or --suggest)")
-    with Client(args.socket) as client:
-        reply = client.request("tune", persist=args.persist, **values)
-    c = reply["controller"]
-    print("applied: " + ", ".join(f"{k} = {_shown(c[k])}" for k in values)
-          + ("; written to the config file" if reply["persisted"] else ""))
+    # the first gain change loads python-control into the daemon: seconds on a busy machine
+    with Client(args.socket, timeout_s=60.0) as client:
+        reply = client.request("tune", persist=args.persist, force=args.force, **values)
+        with client.reading():
+            c = reply["controller"]
+            print("applied: " + ", ".join(f"{k} = {_shown(c[k])}" for k in values)
+                  + ("; written to the config file" if reply["persisted"] else ""))
     return 0
 
 
@@ -56,7 +58,7 @@ def _suggest(args: argparse.Namespace) -> dict[str, float]:
     config = args.config
     if config is None:
         try:
-            with Client(args.socket) as client:
+            with Client(args.socket) as client, client.reading():
                 config = client.request("status")["status"]["config_path"]
         except ClientError:
             config = "config/sim.toml"

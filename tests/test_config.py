@@ -8,7 +8,7 @@ import pytest
 
 from leveler.config import ConfigError
 from leveler.durations import parse_duration
-from leveler.settings import Config, load_config
+from leveler.settings import Config, config_diff, effective_values, explicit_keys, load_config
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -165,3 +165,22 @@ def test_every_key_is_documented() -> None:
     missing = [k for k in _keys(Config)
                if f"`{k.rsplit('.', 1)[-1]}`" not in doc and f"`{k}`" not in doc]
     assert not missing, f"undocumented config keys: {missing}"
+
+
+def test_a_reload_sees_which_keys_a_file_sets_and_what_changed() -> None:
+    """The reload guard's two measures: keys a file sets itself (an array of tables counts
+    once) and the effective values that differ (defaults included)."""
+    text = ('[loop]\nrate_hz = 10.0\n[controller]\nki_v_per_m_s = 1e5\n'
+            '[plant.pendulum]\nmass_kg = 0.2\n'
+            '[[sim.faults]]\nkind = "nan"\nat_s = 1.0\nduration_s = 1.0\n')
+    assert explicit_keys(text) == {"loop.rate_hz", "controller.ki_v_per_m_s",
+                                   "plant.pendulum.mass_kg", "sim.faults"}
+    cut = text[:text.index("[plant")]
+    assert explicit_keys(text) - explicit_keys(cut) == {"plant.pendulum.mass_kg", "sim.faults"}
+    old, new = Config(), load_config(REPO / "config" / "sim.toml")[0]
+    diff = config_diff(old, new)
+    assert diff["controller.kd_v_s_per_m"] == (0.0, 3.5e6)
+    assert "loop.rate_hz" not in diff  # 10 Hz in both: not a change
+    assert config_diff(new, new) == {}
+    assert set(diff) <= set(effective_values(new))
+    assert effective_values(new)["plant.piezo.max_v"] == 150.0

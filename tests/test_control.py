@@ -22,11 +22,16 @@ from leveler.settings import load_config
 
 
 def raw(sock_path: Path, payload: bytes, timeout: float = 5.0) -> dict:  # type: ignore[type-arg]
-    """Send raw bytes on a fresh connection; return the first reply line."""
+    """Send raw bytes on a fresh connection; return the first reply line. A connection the
+    daemon refuses is answered and closed at once: the send may fail (EPIPE), the answer is
+    there to read all the same."""
     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
         s.settimeout(timeout)
         s.connect(str(sock_path))
-        s.sendall(payload)
+        try:
+            s.sendall(payload)
+        except BrokenPipeError:
+            pass
         return json.loads(s.makefile("rb").readline())
 
 

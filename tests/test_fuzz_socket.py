@@ -51,6 +51,7 @@ from leveler.protocol import (
     ProtocolError,
     modulate_args,
     parse_request,
+    reload_args,
     tune_args,
 )
 
@@ -484,7 +485,9 @@ JSON = st.recursive(
     st.none() | st.booleans() | st.integers(-(2**63), 2**64 - 1) | st.floats() | st.text(),
     _containers, max_leaves=6)
 NUMBER = st.floats() | st.integers(-(2**63), 2**64 - 1) | JSON
-ARGS = {"tune": {**{k: NUMBER for k in TUNE_KEYS}, "persist": st.booleans() | JSON},
+ARGS = {"tune": {**{k: NUMBER for k in TUNE_KEYS}, "persist": st.booleans() | JSON,
+                 "force": st.booleans() | JSON},
+        "reload": {"accept_dropped": st.booleans() | JSON, "force": st.booleans() | JSON},
         "modulate": {"amplitude_v": NUMBER, "period_s": NUMBER, "cycles": NUMBER,
                      "force": st.booleans() | JSON},
         "watch": {"rate_hz": NUMBER}}
@@ -511,6 +514,10 @@ def test_requests_are_refused_or_exactly_valid(req: dict[str, object]) -> None:
             amplitude, period, cycles, force = modulate_args(ok)
             assert amplitude > 0 and period > 0 and 1 <= cycles <= 10_000
             assert isinstance(force, bool)
+        elif ok["verb"] == "reload":
+            accept_dropped, force = reload_args(ok)
+            assert isinstance(accept_dropped, bool) and isinstance(force, bool)
+            assert set(ok) <= {"v", "verb", "accept_dropped", "force"}
     except ProtocolError as exc:
         event(f"refused: {str(exc).split(':')[0].split(' ')[0]}")
         return

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import os
+import socket
 from pathlib import Path
 
 import pytest
@@ -13,7 +15,10 @@ from leveler.protocol import (
     client_socket_candidates,
     default_socket_path,
     parse_request,
+    reload_args,
+    socket_problem,
     tune_args,
+    untrusted_socket_dir,
 )
 
 
@@ -97,3 +102,59 @@ def test_socket_places() -> None:
         "/run/user/1000/leveler/control.sock")
     assert default_socket_path({}, 1000) == Path("/tmp/leveler-1000/control.sock")
     assert client_socket_candidates({"LEVELER_SOCKET": "/x.sock"})[0] == Path("/x.sock")
+
+
+def test_reload_takes_two_flags_and_nothing_else() -> None:
+    assert reload_args({"v": 1, "verb": "reload"}) == (False, False)
+    assert reload_args({"verb": "reload", "accept_dropped": True, "force": True}) == (True, True)
+    for bad, needle in (({"accept_dropped": 1}, "accept_dropped must be true or false"),
+                        ({"force": "yes"}, "force must be true or false"),
+                        ({"forced": True}, "unknown key 'forced'")):
+        with pytest.raises(ProtocolError, match=needle):
+            reload_args({"verb": "reload", **bad})
+    assert tune_args({"verb": "tune", "kd_v_s_per_m": 0.0, "force": True})[0] == {
+        "kd_v_s_per_m": 0.0}
+    with pytest.raises(ProtocolError, match="force must be true or false"):
+        tune_args({"verb": "tune", "kd_v_s_per_m": 0.0, "force": None})
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="needs root to give a directory to nobody")
+def test_a_socket_directory_is_trusted_only_if_no_one_else_can_write_it(tmp_path: Path) -> None:
+    d = tmp_path / "d"
+    d.mkdir(mode=0o750)
+    assert untrusted_socket_dir(d, {0}) is None
+    d.chmod(0o1777)
+    assert "writable by anyone (mode 1777)" in str(untrusted_socket_dir(d, {0}))
+    d.chmod(0o770)
+    assert "writable by its group (mode 0770)" in str(untrusted_socket_dir(d, {0}))
+    d.chmod(0o755)
+    os.chown(d, 65534, 65534)
+    assert "belongs to uid 65534, not to uid 0" in str(untrusted_socket_dir(d, {0}))
+    assert untrusted_socket_dir(d, {0, 65534}) is None
+    (tmp_path / "f").write_text("")
+    assert "is not a directory" in str(untrusted_socket_dir(tmp_path / "f", {0}))
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="needs root to give a directory to nobody")
+def test_the_client_trusts_a_system_users_directory_only_where_root_alone_could_make_it(
+        tmp_path: Path) -> None:
+    """/run/leveler belongs to the service's user but sits in root-only /run: trusted. The same
+    directory in a world-writable place (/tmp) could be anyone's: not trusted."""
+    parent = tmp_path / "run"
+    parent.mkdir(mode=0o755)
+    service = parent / "leveler"
+    service.mkdir(mode=0o755)
+    with socket.socket(socket.AF_UNIX) as s:
+        s.bind(str(service / "c.sock"))
+        os.chown(service, 65534, 65534)
+        os.chown(service / "c.sock", 65534, 65534)
+        assert socket_problem(service / "c.sock") is None
+        parent.chmod(0o1777)
+        assert "belongs to uid 65534" in str(socket_problem(service / "c.sock"))
+        parent.chmod(0o755)
+        os.chown(service / "c.sock", 1234, 1234)  # not the directory owner's
+        assert "c.sock belongs to uid 1234" in str(socket_problem(service / "c.sock"))
+    (service / "plain").write_text("")
+    os.chown(service / "plain", 65534, 65534)
+    assert "is not a socket" in str(socket_problem(service / "plain"))
+    assert socket_problem(service / "missing.sock") is None  # connect() will say so
