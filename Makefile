@@ -70,7 +70,7 @@ clean:
 # The hardened service: system user, /opt/leveler venv, /etc/leveler/leveler.toml (kept if
 # present), /etc/systemd/system/leveler.service. Needs root; safe to repeat.
 install:
-	$(INSTALL_PYTHON) -m leveler.install --python $(INSTALL_PYTHON)
+	$(INSTALL_PYTHON) -m leveler.daemon.install --python $(INSTALL_PYTHON)
 
 # mbpoll: a third-party Modbus client the tests check the emulator with; apt-installed only
 # when missing and we are root (elsewhere that test skips and says why).

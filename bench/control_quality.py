@@ -25,10 +25,10 @@ from pathlib import Path
 
 import numpy as np
 
+from leveler.analysis.spectral import asd_at
 from leveler.settings import Config, load_config
 from leveler.sim.disturbance import Disturbances
-from leveler.simulate import run_virtual
-from leveler.spectral import asd_at
+from leveler.virtual import run_virtual
 
 REPO = Path(__file__).resolve().parents[1]
 DAY_S = 86400.0

@@ -19,7 +19,7 @@ from typing import Any
 
 from common import REPO, row  # beside this script
 
-from leveler.client import Client
+from leveler.daemon.client import Client
 
 SECTION = "control socket"
 

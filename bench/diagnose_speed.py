@@ -14,10 +14,10 @@ from typing import Any
 
 from common import REPO, bench_tmpdir, row  # beside this script
 
-from leveler.diagnose import diagnose
-from leveler.hidden import make_measured
-from leveler.predict import load_measured
-from leveler.replay import replay
+from leveler.analysis.diagnose import diagnose
+from leveler.analysis.predict import load_measured
+from leveler.analysis.replay import replay
+from leveler.analysis.synthetic import make_measured
 from leveler.settings import load_config
 from leveler.sim.effects import PeriodicDisturbance
 

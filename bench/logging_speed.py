@@ -26,11 +26,11 @@ import orjson
 from common import REPO, at_least, bench_tmpdir, row  # beside this script
 from mcap.writer import CompressionType, Writer
 
-from leveler.logreader import SAMPLE_TOPIC
-from leveler.logwriter import LogWriter
+from leveler.log.reader import SAMPLE_TOPIC
+from leveler.log.writer import LogWriter
 from leveler.records import Event, Sample, Truth
 from leveler.settings import load_config
-from leveler.simulate import run_virtual
+from leveler.virtual import run_virtual
 
 SECTION = "logging"
 POOL = 20_000  # distinct samples, cycled; more than the ~3,500 in a 1 MiB chunk

@@ -1,16 +1,15 @@
 """The real-time loop at 1 kHz with logging on, next to `cyclictest` (issue 7; issue 8's soak).
 
-What is measured is what `leveler run` gives a user: the daemon (`leveler.daemon.Daemon` with
-its `RealtimeClock`, the simulated backend and the MCAP log through `RotatingLog`) with
+What is measured is what `leveler run` gives a user: the daemon (`leveler.daemon.service.Daemon`
+with its `RealtimeClock`, the simulated backend and the MCAP log through `RotatingLog`) with
 config/sim.toml at `rate_hz = 1000`, in a child process that first takes what
-systemd/leveler.service gives the service: SCHED_FIFO at the unit's CPUSchedulingPriority
-(its helper threads then lower themselves, as under systemd), and mlockall(). Each is
-checked and the table says what was obtained (without root: normal scheduling, no lock).
-The daemon's code runs unchanged; two thin wrappers record, per cycle, the lateness of the
-wake-up (the time the clock read on waking minus the deadline it slept to), whether the
-thread had to wait again after waking (a voluntary context switch inside the tick beyond the
-sleep itself: the interpreter lock held by another thread), and the thread CPU time of
-`Loop.cycle` (read -> update -> write -> log).
+systemd/leveler.service gives the service: SCHED_FIFO at the unit's CPUSchedulingPriority (its
+helper threads then lower themselves, as under systemd), and mlockall(). Each is checked and the
+table says what was obtained (without root: normal scheduling, no lock). The daemon's code runs
+unchanged; two thin wrappers record, per cycle, the lateness of the wake-up (the time the clock read
+on waking minus the deadline it slept to), whether the thread had to wait again after waking (a
+voluntary context switch inside the tick beyond the sleep itself: the interpreter lock held by
+another thread), and the thread CPU time of `Loop.cycle` (read -> update -> write -> log).
 
 Baselines, measured in the same benchmark, one after another (never concurrently):
 - `cyclictest` (Debian rt-tests) with the same policy, priority, interval (1000 us) and
@@ -166,7 +165,7 @@ def child_daemon(config: Path, duration_s: float, logged: bool) -> dict[str, Any
     """`leveler run --config config --duration duration_s`, instrumented."""
     import logging
 
-    from leveler.daemon import Daemon
+    from leveler.daemon.service import Daemon
 
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr)  # as run_daemon
     d = Daemon(config, duration_s)
@@ -206,7 +205,7 @@ def child_daemon(config: Path, duration_s: float, logged: bool) -> dict[str, Any
 
 def child_bare(duration_s: float) -> dict[str, Any]:
     """The same clock, process set-up and instrumentation, no work."""
-    from leveler.clock import RealtimeClock
+    from leveler.loop.clock import RealtimeClock
 
     rec = _Recorder()
     clock = RealtimeClock(1.0 / RATE_HZ)

@@ -25,7 +25,7 @@ from pathlib import Path
 
 from loop_timing import run_cyclictest  # beside this script
 
-from leveler.logreader import read_log
+from leveler.log.reader import read_log
 
 REPO = Path(__file__).resolve().parents[1]
 PERIOD_US = 10_000  # 100 Hz

@@ -1,4 +1,4 @@
-"""PID update: leveler.pid.PID.update against simple_pid.PID on the same inputs.
+"""PID update: leveler.loop.pid.PID.update against simple_pid.PID on the same inputs.
 
 leveler's PID runs with everything it offers switched on: P, I and D, a derivative
 low-pass, a setpoint ramp (moving: the setpoint changes during the run), an output slew
@@ -20,7 +20,7 @@ from typing import Any
 
 from common import at_most, row  # beside this script
 
-from leveler.pid import PID, PIDConfig, PIDGains, PIDOutput
+from leveler.loop.pid import PID, PIDConfig, PIDGains, PIDOutput
 
 SECTION = "pid"
 DT = 1e-3

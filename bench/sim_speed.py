@@ -35,13 +35,13 @@ import control as ct
 import numpy as np
 from common import REPO, at_least, at_most, bench_tmpdir, row  # beside this script
 
-from leveler.logwriter import LogWriter
-from leveler.pid import PID
+from leveler.log.writer import LogWriter
+from leveler.loop.pid import PID
 from leveler.settings import Config, load_config
 from leveler.sim.disturbance import Disturbances
 from leveler.sim.params import PlantParams
 from leveler.sim.plant import Plant
-from leveler.simulate import run_virtual
+from leveler.virtual import run_virtual
 
 SECTION = "simulation"
 DAY_S = 86400.0
@@ -127,7 +127,7 @@ def python_control_loop(cfg: Config) -> ct.InterconnectedSystem:
     kp, ki, kd = pc.gains.kp, pc.gains.ki, pc.gains.kd
     lo, hi, slew, tau = pc.output_min_v, pc.output_max_v, pc.slew_v_per_s * dt, pc.d_filter_tau_s
     target, ramp = pc.setpoint_m, pc.setpoint_ramp_m_per_s * dt
-    # leveler.pid's back-calculation gain dt / (Tt + dt), Tt by Astrom and Hagglund's rule;
+    # leveler.loop.pid's back-calculation gain dt / (Tt + dt), Tt by Astrom and Hagglund's rule;
     # no integral: no tracking; kp == 0 (no Ti): track over three samples.
     if pc.tracking_time_s > 0.0:
         k_track = dt / (pc.tracking_time_s + dt)
@@ -140,7 +140,7 @@ def python_control_loop(cfg: Config) -> ct.InterconnectedSystem:
         k_track = dt / (tt + dt)
 
     def law(x: np.ndarray, y: float) -> tuple[float, ...]:
-        """leveler.pid.PID.update as a function of the state
+        """leveler.loop.pid.PID.update as a function of the state
         [integral V, last output V, last measurement m, filtered derivative m/s, setpoint m,
         started 0/1]: (integral, error, unclamped, command, derivative, setpoint)."""
         i, last, prev, df, sp, started = x

@@ -9,13 +9,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from leveler.config import ConfigError, build, load_toml, non_negative, positive
 from leveler.drivers.modbus_config import ModbusActuatorConfig, ModbusSensorConfig
 from leveler.drivers.nidaq_config import NidaqActuatorConfig, NidaqSensorConfig
 from leveler.drivers.serial_config import SerialPiezoConfig, SerialSensorConfig
 from leveler.drivers.simulated import FaultSpec
-from leveler.pid import PIDConfig, PIDGains
+from leveler.loop.pid import PIDConfig, PIDGains
 from leveler.sim.params import PlantParams
+from leveler.typed_config import ConfigError, build, load_toml, non_negative, positive
 
 
 @dataclass(frozen=True, slots=True)

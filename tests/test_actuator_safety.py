@@ -14,10 +14,10 @@ from dataclasses import replace
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from leveler.clock import VirtualClock
 from leveler.drivers.base import DriverError, Reading, Status
-from leveler.loop import FAULT, Loop
-from leveler.pid import PID, PIDGains
+from leveler.loop.clock import VirtualClock
+from leveler.loop.cycle import FAULT, Loop
+from leveler.loop.pid import PID, PIDGains
 from leveler.settings import Config, ControllerConfig
 from leveler.stand import open_stand
 

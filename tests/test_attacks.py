@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from leveler.logreader import read_log
+from leveler.log.reader import read_log
 
 ROOT_ONLY = pytest.mark.skipif(os.geteuid() != 0, reason="needs root to act as another user")
 NOBODY = 65534

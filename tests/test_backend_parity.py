@@ -22,9 +22,9 @@ import numpy as np
 import pytest
 from conftest import daemon_config
 
-from leveler.logreader import read_log
+from leveler.log.reader import read_log
 from leveler.settings import load_config
-from leveler.simulate import run_virtual
+from leveler.virtual import run_virtual
 
 REPO_CONFIG = Path(__file__).resolve().parents[1] / "config"
 PERIOD_S = 40.0

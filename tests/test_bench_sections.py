@@ -41,7 +41,7 @@ def test_raw_and_leveler_logs_hold_the_same_samples(bench_path: None, tmp_path: 
 
     from mcap.reader import make_reader
 
-    from leveler.logreader import read_log
+    from leveler.log.reader import read_log
 
     lg = _import("logging_speed")
     pool = lg.sample_pool(500)

@@ -11,8 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from leveler.calibratecom import ComResult, calibrate, calibrate_offsets, calibration_run
-from leveler.cli import main
+from leveler.cli.main import main
+from leveler.procedures.calibrate_com import (
+    ComResult,
+    calibrate,
+    calibrate_offsets,
+    calibration_run,
+)
 from leveler.sim.torsion import TorsionParams, com_offset_m
 
 REPO = Path(__file__).resolve().parents[1]

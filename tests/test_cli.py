@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from leveler.cli import build_parser, main
-from leveler.logreader import read_log
+from leveler.cli.main import build_parser, main
+from leveler.log.reader import read_log
 
 REPO = Path(__file__).resolve().parents[1]
 COMMANDS = ["run", "sim", "asd", "recover"]
@@ -164,8 +164,8 @@ def test_asd_bridges_a_few_held_bad_readings_and_refuses_long_gaps(tmp_path: Pat
 )
 def test_bridge_gaps_bounds(x: np.ndarray, fs: float, samples: int | None, gaps: int | None,
                             trimmed: int | None, refused: str | None) -> None:
-    from leveler.asdcmd import bridge_gaps
-    from leveler.logreader import LogError
+    from leveler.cli.asd import bridge_gaps
+    from leveler.log.reader import LogError
 
     if refused is not None:
         with pytest.raises(LogError, match=re.escape(refused)):

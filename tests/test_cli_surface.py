@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from leveler.cli import build_parser
+from leveler.cli.main import build_parser
 
 SURFACE = Path(__file__).with_name("data") / "cli_surface.json"
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 
-from leveler.clock import RealtimeClock
+from leveler.loop.clock import RealtimeClock
 
 
 def test_start_up_before_the_first_tick_is_not_an_overrun() -> None:

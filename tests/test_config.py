@@ -6,9 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from leveler.config import ConfigError
-from leveler.durations import parse_duration
+from leveler.cli.durations import parse_duration
 from leveler.settings import Config, config_diff, effective_values, explicit_keys, load_config
+from leveler.typed_config import ConfigError
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from leveler.logreader import read_log
+from leveler.log.reader import read_log
 from leveler.settings import load_config
 
 
@@ -265,7 +265,7 @@ def as_user(uid: int, fn) -> str:  # type: ignore[no-untyped-def]
 
 @pytest.mark.skipif(os.geteuid() != 0, reason="needs root to act as another user (nobody)")
 def test_a_client_without_access_is_refused(start_daemon) -> None:  # type: ignore[no-untyped-def]
-    from leveler.client import Client
+    from leveler.daemon.client import Client
 
     d = start_daemon()
     nobody = 65534
@@ -452,7 +452,7 @@ def test_a_full_daemon_tells_the_cli_to_try_later(tmp_path: Path) -> None:
 def test_status_text_says_what_a_null_means() -> None:
     """JSON carries NaN and infinity as null: a failed write, an unlimited slew, no log file
     (the disk is full) must read as such, not as `None` or a TypeError."""
-    from leveler.client import format_status
+    from leveler.daemon.client import format_status
 
     st = {"version": "0", "pid": 1, "uptime_s": 60.0, "config_path": "c.toml",
           "state": "engaged", "fault_reason": "", "driver_errors": {"sensor": 0, "actuator": 1},

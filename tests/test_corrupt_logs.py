@@ -10,7 +10,7 @@ whose records all read is used silently; an incomplete one with enough samples i
 with the note (replay and diagnose refuse one with a gap in the middle); one with too few
 gets an error saying that the log is incomplete, where and why.
 
-Every case runs through `leveler.cli.main` in-process (a traceback would be an exception
+Every case runs through `leveler.cli.main.main` in-process (a traceback would be an exception
 out of it); one case of each kind also runs as a real `leveler` process, and all of them do
 under `-m slow`.
 """
@@ -28,8 +28,8 @@ import pytest
 from mcap.opcode import Opcode
 from mcap.writer import Writer
 
-from leveler.cli import main
-from leveler.logreader import SAMPLE_TOPIC, LogError, read_log
+from leveler.cli.main import main
+from leveler.log.reader import SAMPLE_TOPIC, LogError, read_log
 
 REPO = Path(__file__).resolve().parents[1]
 COMMANDS = ("replay", "diagnose", "asd")

@@ -36,8 +36,8 @@ import numpy as np
 import pytest
 from conftest import daemon_config
 
-from leveler.client import Client
-from leveler.logreader import LogData, read_log
+from leveler.daemon.client import Client
+from leveler.log.reader import LogData, read_log
 
 CHUNK_INTERVAL_S = 1.0  # config/sim.toml's [log] chunk_interval_s, the documented default
 KILL_WINDOW_S = (1.5, 6.0)  # kill this long after the control socket appears
@@ -224,7 +224,7 @@ def test_sigkill_at_many_random_moments(tmp_path: Path) -> None:
 STALL_IN_OPEN = """
 import sys, time
 from pathlib import Path
-from leveler import logwriter
+from leveler.log import writer as logwriter
 
 def stall(self, name, data):
     Path(sys.argv[2]).touch()

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from leveler.logreader import read_log
+from leveler.log.reader import read_log
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from leveler.cli import main
-from leveler.design_ip import (
+from leveler.cli.main import main
+from leveler.procedures.design_ip import (
     DesignError,
     IpModel,
     evaluate,

@@ -21,10 +21,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from leveler.cli import main
-from leveler.diagnose import diagnose, gap
-from leveler.hidden import make_measured
-from leveler.predict import Predictor, load_measured
+from leveler.analysis.diagnose import diagnose, gap
+from leveler.analysis.predict import Predictor, load_measured
+from leveler.analysis.synthetic import make_measured
+from leveler.cli.main import main
 from leveler.settings import load_config
 from leveler.sim.effects import (
     ActuatorDelay,
@@ -227,7 +227,7 @@ def _imported(tmp_path: Path, effect: Effect | None, capsys: pytest.CaptureFixtu
     That other system's loop is a slow integral-only one (the paper's kind, our own before
     the damped tuning). On our default loop, whose gain is 46x higher, diagnose also
     blames an actuator hysteresis here: open, see docs/replay.md."""
-    from leveler.logreader import read_log
+    from leveler.log.reader import read_log
 
     cfg, text = _integral_only(tmp_path)
     make_measured(tmp_path / "m.mcap", cfg, text, effect, duration_s=4 * 3600, seed=9, **dither)

@@ -17,9 +17,9 @@ import pytest
 from conftest import daemon_config
 from test_backend_parity import free_port
 
-from leveler.emulate_modbus import ModbusEmulator
-from leveler.emulate_serial import SensorFormat, SerialEmulator
-from leveler.logreader import read_log
+from leveler.emulate.modbus import ModbusEmulator
+from leveler.emulate.serial import SensorFormat, SerialEmulator
+from leveler.log.reader import read_log
 from leveler.settings import load_config
 from leveler.sim.plant import Plant
 

@@ -13,10 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from leveler.config import ConfigError, build
-from leveler.diagnose import gap
-from leveler.hidden import make_measured
-from leveler.predict import Predictor, load_measured
+from leveler.analysis.diagnose import gap
+from leveler.analysis.predict import Predictor, load_measured
+from leveler.analysis.synthetic import make_measured
 from leveler.settings import Config, load_config
 from leveler.sim.effects import (
     EFFECTS,
@@ -31,6 +30,7 @@ from leveler.sim.effects import (
     SensorGainError,
     TemperatureCoupling,
 )
+from leveler.typed_config import ConfigError, build
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -23,8 +23,8 @@ import pytest
 from conftest import daemon_config
 from test_backend_parity import free_port
 
-from leveler.emulate_modbus import ModbusEmulator
-from leveler.logreader import read_log
+from leveler.emulate.modbus import ModbusEmulator
+from leveler.log.reader import read_log
 from leveler.settings import load_config
 from leveler.sim.plant import Plant
 
@@ -123,7 +123,7 @@ def _raise_in_daemon(start_daemon: Callable[..., object], tmp_path: Path, where:
 @pytest.mark.parametrize(("where", "exc"), [
     ("leveler.drivers.modbus.ModbusSensor.read", "ValueError"),  # a driver bug, not DriverError
     ("leveler.drivers.modbus.ModbusActuator.write", "TypeError"),  # ... on the write side
-    ("leveler.pid.PID.update", "ZeroDivisionError"),  # a bug inside the cycle itself
+    ("leveler.loop.pid.PID.update", "ZeroDivisionError"),  # a bug inside the cycle itself
 ])
 def test_an_unexpected_exception_leaves_the_piezo_safe_and_the_log_finished(
         start_daemon: Callable[..., object], tmp_path: Path, where: str, exc: str) -> None:
@@ -150,7 +150,7 @@ def test_a_log_that_fails_with_the_loop_still_gets_the_piezo_safe_and_the_file_f
     made safe before any of them, and the file is still finished, the socket removed."""
     err, wire = _raise_in_daemon(
         start_daemon, tmp_path,
-        "leveler.logrotate.RotatingLog.sample,leveler.logrotate.RotatingLog.event", "OSError")
+        "leveler.log.rotate.RotatingLog.sample,leveler.log.rotate.RotatingLog.event", "OSError")
     assert "RotatingLog.event" in err  # the stop event failed as well
     assert wire[-1] == SAFE_V and wire[-2] != SAFE_V, wire[-10:]
     log = read_log(next((tmp_path / "logs").glob("*.mcap")))

@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 from test_loop import Memory
 
-from leveler.clock import VirtualClock
 from leveler.drivers.simulated import FaultSpec
-from leveler.logreader import read_log
-from leveler.loop import ENGAGED, FAULT, Loop
-from leveler.pid import PID
+from leveler.log.reader import read_log
+from leveler.loop.clock import VirtualClock
+from leveler.loop.cycle import ENGAGED, FAULT, Loop
+from leveler.loop.pid import PID
 from leveler.settings import Config
 from leveler.stand import open_stand
 

@@ -25,8 +25,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from leveler.client import Client, format_status
-from leveler.logreader import read_log
+from leveler.daemon.client import Client, format_status
+from leveler.log.reader import read_log
 
 LOSS = re.compile(r"log write failed: \[Errno 28\] No space left on device; (\d+) samples lost "
                   r"between (\S+) and (\S+)")

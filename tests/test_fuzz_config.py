@@ -27,8 +27,8 @@ import pytest
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
-from leveler.config import ConfigError
 from leveler.settings import Config, load_config
+from leveler.typed_config import ConfigError
 
 REPO = Path(__file__).resolve().parents[1]
 BASES = ("sim.toml", "lab-modbus.toml")

@@ -42,8 +42,7 @@ from conftest import daemon_config
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 
-from leveler.logreader import read_log
-from leveler.protocol import (
+from leveler.daemon.protocol import (
     MAX_LINE_BYTES,
     NO_ARGS,
     TUNE_KEYS,
@@ -54,6 +53,7 @@ from leveler.protocol import (
     reload_args,
     tune_args,
 )
+from leveler.log.reader import read_log
 
 SEED = 20261122
 RATE_HZ = 100.0

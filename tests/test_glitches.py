@@ -11,7 +11,7 @@ from pathlib import Path
 from conftest import daemon_config
 from test_backend_parity import free_port
 
-from leveler.logreader import read_log
+from leveler.log.reader import read_log
 
 RUN_S = 24.0
 FAULTS = {  # emulator time; the daemon starts about a second later and engages at once

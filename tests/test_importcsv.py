@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from leveler import __version__, importcsv
-from leveler.cli import main
-from leveler.logreader import read_log
-from leveler.logwriter import LogWriter
+from leveler.cli.main import main
+from leveler.log.reader import read_log
+from leveler.log.writer import LogWriter
 
 N = 200
 DT = 0.1

@@ -26,9 +26,9 @@ from mcap.reader import SeekingReader, make_reader
 from mcap.records import MessageIndex
 from mcap.stream_reader import StreamReader
 
-from leveler import logwriter
-from leveler.logreader import LogError, read_log, recover
-from leveler.logwriter import LogWriter
+from leveler.log import writer as logwriter
+from leveler.log.reader import LogError, read_log, recover
+from leveler.log.writer import LogWriter
 from leveler.records import Event, Sample, Truth
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -219,7 +219,7 @@ def test_schemas_and_docs_cover_every_record_field() -> None:
 
 CHILD = """
 import sys, time
-from leveler.logwriter import LogWriter
+from leveler.log.writer import LogWriter
 from leveler.records import Sample
 path, rate = sys.argv[1], float(sys.argv[2])
 w = LogWriter(path, chunk_interval_s=1.0)
@@ -408,7 +408,7 @@ def test_wait_drained_paces_a_fast_producer(tmp_path: Path) -> None:
 
 ABANDON = """
 import sys, threading, time
-from leveler.logwriter import LogWriter
+from leveler.log.writer import LogWriter
 from leveler.records import Sample
 w = LogWriter(sys.argv[1])
 def worker():  # keeps logging after the main thread has returned; nobody calls close()
@@ -469,7 +469,7 @@ def test_an_open_file_holds_about_a_hundred_bytes_per_chunk_in_memory(tmp_path: 
     """The summary's chunk indexes stay in memory until the file is finished: at a chunk a
     second, a day's file. As ChunkIndex objects that was ~700 bytes a chunk (2.3 MiB/h of
     daemon growth in the 1 kHz soak); serialized, it is the bytes the summary will hold."""
-    from leveler.logwriter import _McapFile
+    from leveler.log.writer import _McapFile
 
     out = (tmp_path / "x.mcap").open("wb")
     f = _McapFile(out, "test", "zstd", 1 << 20)

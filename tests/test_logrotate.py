@@ -19,10 +19,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from leveler import logrotate
-from leveler.logreader import LogData, read_log
-from leveler.logrotate import RotatingLog
-from leveler.logwriter import LogWriter
+from leveler.log import rotate as logrotate
+from leveler.log.reader import LogData, read_log
+from leveler.log.rotate import RotatingLog
+from leveler.log.writer import LogWriter
 from leveler.records import Event, Sample
 
 ROOT = Path(__file__).resolve().parents[1]

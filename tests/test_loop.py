@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from test_backend_parity import lock_in_amplitude
 
-from leveler.clock import VirtualClock
 from leveler.drivers.base import Block, DriverError, Reading
-from leveler.loop import ENGAGED, FAULT, IDLE, Loop
-from leveler.pid import PID, PIDGains
+from leveler.loop.clock import VirtualClock
+from leveler.loop.cycle import ENGAGED, FAULT, IDLE, Loop
+from leveler.loop.pid import PID, PIDGains
 from leveler.records import Event, Sample, Truth
 from leveler.settings import Config
 from leveler.stand import open_stand

@@ -13,7 +13,7 @@ from types import ModuleType
 
 import pytest
 
-import leveler.logwriter as lw
+import leveler.log.writer as lw
 from leveler.records import Sample
 from leveler.rt import background_thread, demote_thread
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from conftest import daemon_config
 
-from leveler.logreader import read_log
+from leveler.log.reader import read_log
 
 
 def _free_port() -> int:

@@ -16,13 +16,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from pymodbus.client import ModbusTcpClient
 
-from leveler.config import ConfigError, build
 from leveler.drivers.base import Actuator, DriverError, Sensor, Status
 from leveler.drivers.modbus import ModbusActuator, ModbusLink, ModbusSensor
 from leveler.drivers.modbus_config import ModbusActuatorConfig, ModbusSensorConfig
-from leveler.emulate_modbus import ModbusEmulator
+from leveler.emulate.modbus import ModbusEmulator
 from leveler.sim.params import PlantParams
 from leveler.sim.plant import Plant
+from leveler.typed_config import ConfigError, build
 
 FAST = {"timeout_s": 0.25, "reconnect_min_s": 0.2, "reconnect_max_s": 0.8}
 

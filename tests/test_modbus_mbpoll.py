@@ -11,7 +11,7 @@ import pytest
 
 from leveler.drivers.modbus import ModbusSensor
 from leveler.drivers.modbus_config import ModbusActuatorConfig, ModbusSensorConfig
-from leveler.emulate_modbus import ModbusEmulator
+from leveler.emulate.modbus import ModbusEmulator
 from leveler.sim.params import PlantParams
 from leveler.sim.plant import Plant
 

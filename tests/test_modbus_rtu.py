@@ -20,7 +20,7 @@ from conftest import daemon_config
 from leveler.drivers.base import DriverError, Status
 from leveler.drivers.modbus import ModbusActuator, ModbusSensor
 from leveler.drivers.modbus_config import ModbusActuatorConfig, ModbusSensorConfig
-from leveler.emulate_modbus import ModbusEmulator
+from leveler.emulate.modbus import ModbusEmulator
 from leveler.sim.params import PlantParams
 from leveler.sim.plant import Plant
 

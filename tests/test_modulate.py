@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from leveler.logreader import read_log
-from leveler.modulation import SquareWave, response
+from leveler.log.reader import read_log
+from leveler.loop.modulation import SquareWave, response
 
 
 def test_square_wave_shape_and_end() -> None:

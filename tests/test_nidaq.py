@@ -18,13 +18,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from leveler.config import ConfigError
 from leveler.drivers.base import DriverError
 from leveler.drivers.limits import slew_window
 from leveler.drivers.nidaq import NidaqActuator, NidaqSensor, ao_command
 from leveler.drivers.nidaq_config import NidaqActuatorConfig, NidaqSensorConfig
 from leveler.settings import load_config
 from leveler.stand import open_stand
+from leveler.typed_config import ConfigError
 
 REPO = Path(__file__).resolve().parents[1]
 HAVE_NIDAQMX = importlib.util.find_spec("nidaqmx") is not None

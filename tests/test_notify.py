@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from leveler.notify import Notifier
+from leveler.daemon.notify import Notifier
 
 
 @pytest.fixture

@@ -6,9 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from leveler.config import ConfigError
-from leveler.persist import set_keys, write_atomic
+from leveler.daemon.persist import set_keys, write_atomic
 from leveler.settings import load_config
+from leveler.typed_config import ConfigError
 
 REPO = Path(__file__).resolve().parents[1]
 

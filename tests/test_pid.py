@@ -1,4 +1,4 @@
-"""Tests for leveler.pid: invariants by Hypothesis, loop behaviour by small simulations.
+"""Tests for leveler.loop.pid: invariants by Hypothesis, loop behaviour by small simulations.
 
 Units follow the instrument: sensor readings of order a millimetre, piezo up to ~150 V,
 so gains are large (V/m) and the tolerances below are meaningful at those scales.
@@ -15,7 +15,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from leveler.pid import PID, PIDConfig, PIDGains, PIDOutput
+from leveler.loop.pid import PID, PIDConfig, PIDGains, PIDOutput
 
 FAST = settings(deadline=None)
 

@@ -8,10 +8,10 @@ import control
 import numpy as np
 import pytest
 
-from leveler.config import ConfigError, build
 from leveler.sim.params import PendulumParams, PlantParams, SensorParams
 from leveler.sim.pendulum import PendulumModel, equilibrium_angle, linear_matrices
 from leveler.sim.plant import Plant
+from leveler.typed_config import ConfigError, build
 
 
 def paper_pendulum(**kw: object) -> PendulumParams:

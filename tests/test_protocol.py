@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from leveler.protocol import (
+from leveler.daemon.protocol import (
     MAX_LINE_BYTES,
     ProtocolError,
     client_socket_candidates,

@@ -11,13 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from leveler.cli import main
-from leveler.hidden import make_measured
-from leveler.logreader import read_log
-from leveler.predict import Predictor, load_measured
-from leveler.replay import replay, what_if
+from leveler.analysis.predict import Predictor, load_measured
+from leveler.analysis.replay import replay, what_if
+from leveler.analysis.spectral import asd_at
+from leveler.analysis.synthetic import make_measured
+from leveler.cli.main import main
+from leveler.log.reader import read_log
 from leveler.settings import load_config
-from leveler.spectral import asd_at
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -36,7 +36,7 @@ def test_under_fifo_memory_is_locked_as_the_service_asks() -> None:
 
 
 def test_freezing_the_heap_leaves_the_collector_only_what_comes_later() -> None:
-    probe = ("import gc, numpy, leveler.daemon; from leveler.rt import freeze_heap; "
+    probe = ("import gc, numpy, leveler.daemon.service; from leveler.rt import freeze_heap; "
              "n = freeze_heap(); later = [[i] for i in range(1000)]; "
              "print(n, len(gc.get_objects(2)), gc.get_freeze_count())")
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,

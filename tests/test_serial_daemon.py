@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 from conftest import daemon_config
 
-from leveler.logreader import read_log
+from leveler.log.reader import read_log
 
 
 def test_daemon_levels_the_emulated_plant_over_serial(

@@ -12,14 +12,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from leveler.config import ConfigError, build
 from leveler.drivers.base import Actuator, DriverError, Sensor, Status
 from leveler.drivers.piezo_serial import SerialPiezo
 from leveler.drivers.sensor_serial import SerialSensor
 from leveler.drivers.serial_config import SerialPiezoConfig, SerialSensorConfig
-from leveler.emulate_serial import FAULT_KINDS, SensorFormat, SerialEmulator
+from leveler.emulate.serial import FAULT_KINDS, SensorFormat, SerialEmulator
 from leveler.sim.params import PlantParams
 from leveler.sim.plant import Plant
+from leveler.typed_config import ConfigError, build
 
 PROTOCOLS = {"thorlabs_mdt": "x", "pi_gcs2": "1"}  # protocol -> axis
 # what each fault must say (DriverError text), besides naming port and command

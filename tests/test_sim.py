@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from leveler.logreader import read_log
+from leveler.log.reader import read_log
 
 REPO = Path(__file__).resolve().parents[1]
 PAPER_OPEN_LOOP_M_RTHZ = 5.7e-6

@@ -6,12 +6,12 @@ exactly one file (seq contiguous from 0, none lost, none twice), every scheduled
 answered by its event (and the faults that open the loop by a reconnect and a resume), and
 no unhandled exception in any thread.
 
-`Daemon.run` runs unchanged on the real simulated stand, RotatingLog and LogWriter; only the
-`time` module that leveler.clock and leveler.daemon see is replaced by `VirtualTime`, whose
-`sleep` (the RealtimeClock's wait for its next deadline) advances monotonic and wall time at
-once. Between two cycles it also paces the loop to the log writer (virtual time would
-otherwise outrun it) and takes the memory readings. The log rotates daily in virtual time,
-as the daemon does in real time (`[log] rotate_interval_s = 86400`).
+`Daemon.run` runs unchanged on the real simulated stand, RotatingLog and LogWriter; only the `time`
+module that leveler.loop.clock and leveler.daemon.service see is replaced by `VirtualTime`, whose
+`sleep` (the RealtimeClock's wait for its next deadline) advances monotonic and wall time at once.
+Between two cycles it also paces the loop to the log writer (virtual time would otherwise outrun it)
+and takes the memory readings. The log rotates daily in virtual time, as the daemon does in real
+time (`[log] rotate_interval_s = 86400`).
 """
 
 from __future__ import annotations
@@ -30,11 +30,11 @@ import numpy as np
 import pytest
 from conftest import daemon_config
 
-import leveler.clock
-import leveler.daemon
-from leveler.daemon import Daemon
-from leveler.logreader import read_log
-from leveler.logrotate import RotatingLog
+import leveler.daemon.service
+import leveler.loop.clock
+from leveler.daemon.service import Daemon
+from leveler.log.reader import read_log
+from leveler.log.rotate import RotatingLog
 
 DAY_S = 86400.0
 HOUR_S = 3600.0
@@ -56,10 +56,10 @@ _BACKLOG = 20_000  # samples the loop may run ahead of the log writer
 
 
 class VirtualTime:
-    """Stands in for the `time` module of leveler.clock and leveler.daemon: monotonic time
-    starts at 0 and only `sleep` advances it; wall time is a fixed start plus monotonic time
-    (a `[[sim.faults]] clock_step` is the daemon's own offset on top). `between(t_s)` is
-    called on the loop thread after each sleep, i.e. between two cycles at loop time t_s."""
+    """Stands in for the `time` module of leveler.loop.clock and leveler.daemon.service:
+    monotonic time starts at 0 and only `sleep` advances it; wall time is a fixed start plus
+    monotonic time (a `[[sim.faults]] clock_step` is the daemon's own offset on top). `between(t_s)`
+    is called on the loop thread after each sleep, i.e. between two cycles at loop time t_s."""
 
     def __init__(self, between: Callable[[float], None]) -> None:
         self.mono_ns = 0
@@ -175,9 +175,10 @@ def run_soak(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, duration_s: float,
                                sleep=vt.sleep, time_ns=vt.time_ns)
     daemon_ns = SimpleNamespace(monotonic=vt.monotonic, time_ns=vt.time_ns, time=vt.time,
                                 sleep=vt.sleep)
-    monkeypatch.setattr(leveler.clock, "time", clock_ns)
-    monkeypatch.setattr(leveler.daemon, "time", daemon_ns)
-    monkeypatch.setattr(leveler.daemon, "RotatingLog", partial(RotatingLog, clock=vt.monotonic))
+    monkeypatch.setattr(leveler.loop.clock, "time", clock_ns)
+    monkeypatch.setattr(leveler.daemon.service, "time", daemon_ns)
+    monkeypatch.setattr(leveler.daemon.service, "RotatingLog",
+                        partial(RotatingLog, clock=vt.monotonic))
     previous_hook = threading.excepthook  # exceptions that end any thread: collected
     threading.excepthook = soak.thread_errors.append
     tracemalloc.start()

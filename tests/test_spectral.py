@@ -1,7 +1,7 @@
 """LPSD against spectra known in closed form, a direct per-segment computation and scipy's welch.
 
-Normalisation under test (see leveler.spectral): one-sided PSD = 2/(fs*S2) * mean |DFT|^2, so
-white noise of standard deviation sigma reads sigma*sqrt(2/fs) and a sine of amplitude A reads
+Normalisation under test (see leveler.analysis.spectral): one-sided PSD = 2/(fs*S2) * mean |DFT|^2,
+so white noise of standard deviation sigma reads sigma*sqrt(2/fs) and a sine of amplitude A reads
 PSD(f0) * ENBW = A^2/2 with ENBW = fs*S2/S1^2 (1.5*fs/L for Hann).
 """
 
@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from leveler.plots import plot_asd
-from leveler.spectral import Spectrum, asd_at, lpsd
+from leveler.analysis.plots import plot_asd
+from leveler.analysis.spectral import Spectrum, asd_at, lpsd
 
 FS = 10.0
 WHITE_ASD = np.sqrt(2 / FS)  # one-sided ASD of unit-variance white noise

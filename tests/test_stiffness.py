@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from leveler import stiffness as st
-from leveler.cli import main
+from leveler.cli.main import main
+from leveler.procedures import stiffness as st
 from leveler.sim.torsion import TorsionParams
 
 REPO = Path(__file__).resolve().parents[1]

@@ -9,11 +9,7 @@ import control
 import numpy as np
 import pytest
 
-from leveler.config import build
-from leveler.pid import PID, PIDConfig, PIDGains
-from leveler.sim.params import PendulumParams, PlantParams
-from leveler.sim.plant import Plant
-from leveler.suggest import (
+from leveler.analysis.suggest import (
     MIN_GAIN_MARGIN_DB,
     SUPPRESSION_HZ,
     Suggestion,
@@ -24,6 +20,10 @@ from leveler.suggest import (
     report,
     suggest,
 )
+from leveler.loop.pid import PID, PIDConfig, PIDGains
+from leveler.sim.params import PendulumParams, PlantParams
+from leveler.sim.plant import Plant
+from leveler.typed_config import build
 
 RATE_HZ = 10.0
 DEFAULT_KI = 7.0e5  # config/sim.toml: a pure integrator
@@ -71,7 +71,7 @@ def test_plant_step_matches_the_simulator() -> None:
 
 
 def test_closed_loop_model_matches_pid_and_simulator() -> None:
-    """A setpoint step through leveler.pid.PID and the Plant against the transfer functions.
+    """A setpoint step through leveler.loop.pid.PID and the Plant against the transfer functions.
 
     PID differentiates the measurement, so for a setpoint r the model is
     y = P (kp + I) / (1 + P (kp + I + D)) r: all three terms of controller_tf are pinned.

@@ -13,9 +13,9 @@ import control
 import numpy as np
 import pytest
 
+from leveler.analysis.suggest import controller_tf, loop_margins, plant_tf
 from leveler.settings import load_config
 from leveler.sim.params import PlantParams
-from leveler.suggest import controller_tf, loop_margins, plant_tf
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from scipy.signal import dlsim
 
-from leveler.cli import main
+from leveler.cli.main import main
+from leveler.procedures.two_stage import TwoStageResult, run_two_stage
 from leveler.sim.twostage import NullPID, TwoStageParams, closed_loop, discrete_response
-from leveler.twostage import TwoStageResult, run_two_stage
 
 REPO = Path(__file__).resolve().parents[1]
 

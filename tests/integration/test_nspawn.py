@@ -53,7 +53,7 @@ def check(name, fn):
         out[name] = f"{type(exc).__name__}: {exc}"
 def imports():
     import numpy, scipy.linalg, serial, pymodbus, mcap, zstandard, orjson, lz4.frame
-    import leveler.daemon
+    import leveler.daemon.service
     scipy.linalg.expm(numpy.eye(3))
 def callback():  # libffi closures: what MemoryDenyWriteExecute= could break
     libc = ctypes.CDLL(ctypes.util.find_library("c"))
@@ -246,7 +246,8 @@ def hanging_config(lab: str) -> str:
 
 @pytest.fixture(scope="module")
 def service(container: Container) -> Container:
-    """Installed by leveler.install inside the container and started (start returns at READY)."""
+    """Installed by leveler.daemon.install inside the container and started (start returns
+    at READY)."""
     ct = container
     ct.run("/usr/bin/python3", "-m", "venv", "--without-pip", "/opt/leveler")
     purelib = ct.run("/opt/leveler/bin/python", "-c",
@@ -254,10 +255,11 @@ def service(container: Container) -> Container:
     ct.write(f"{purelib}/leveler-checkout.pth",
              f"import site; site.addsitedir({str(SITE_PACKAGES)!r})\n")
     ct.write("/opt/leveler/bin/leveler", "#!/opt/leveler/bin/python\nimport sys\n"
-             "from leveler.cli import main\nsys.exit(main())\n", mode=0o755)
+             "from leveler.cli.main import main\nsys.exit(main())\n", mode=0o755)
     config = hanging_config((REPO / "config" / "lab.toml").read_text())
     ct.write("/etc/leveler/leveler.toml", config)  # a lab's config, already there
-    out = ct.run("/opt/leveler/bin/python", "-c", "from leveler.install import install_service; "
+    out = ct.run("/opt/leveler/bin/python", "-c",
+                 "from leveler.daemon.install import install_service; "
                  "print('\\n'.join(install_service(build_venv=False)))", timeout=60)
     for line in ("created group leveler", "created user leveler", "daemon-reload: done",
                  "config /etc/leveler/leveler.toml: kept as it is (never overwritten)"):

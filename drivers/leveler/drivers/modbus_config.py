@@ -15,7 +15,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Literal
 
-from leveler.config import positive
+from leveler.typed_config import positive
 
 MAX_REGISTER = 0xFFFF
 

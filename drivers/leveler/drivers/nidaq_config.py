@@ -1,6 +1,6 @@
 """Configuration of NI-DAQmx analog channels (`[sensor.nidaq]`, `[actuator.nidaq]`), in SI units.
 
-Frozen dataclasses like every other config section: `leveler.config.build` checks types and
+Frozen dataclasses like every other config section: `leveler.typed_config.build` checks types and
 the metadata bounds, `__post_init__` the cross-field rules, so a config that would let the
 driver put the piezo outside its range cannot be constructed. Nothing here needs nidaqmx,
 so a config is checked on any machine, with or without the NI driver.
@@ -15,7 +15,7 @@ import re
 from dataclasses import dataclass
 from typing import Literal
 
-from leveler.config import positive
+from leveler.typed_config import positive
 
 # One physical channel, "device/line": no lists ("a,b") or ranges ("ai0:3"), which would
 # make DAQmx read or write several channels at once.

@@ -1,6 +1,6 @@
 """Configuration of the serial drivers: the `[actuator.serial]` and `[sensor.serial]` tables.
 
-Frozen dataclasses like every other config section (`leveler.config.build` walks their
+Frozen dataclasses like every other config section (`leveler.typed_config.build` walks their
 fields and checks the metadata bounds); the cross-field checks live in `__post_init__`, so
 a config that would make a driver unsafe cannot even be constructed.
 """
@@ -11,7 +11,7 @@ import re
 from dataclasses import dataclass, field
 from typing import Literal
 
-from leveler.config import positive
+from leveler.typed_config import positive
 
 PiezoProtocol = Literal["thorlabs_mdt", "pi_gcs2"]
 

@@ -28,10 +28,10 @@ import numpy as np
 from scipy.signal import cont2discrete, lfilter
 from scipy.special import ndtr
 
-from leveler.config import non_negative, positive
+from leveler.typed_config import non_negative, positive
 
 if TYPE_CHECKING:
-    from leveler.evidence import Evidence
+    from leveler.analysis.evidence import Evidence
 
 Stage = Literal["actuator", "tilt", "response", "sensor"]
 

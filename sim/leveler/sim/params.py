@@ -10,8 +10,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Literal
 
-from leveler.config import non_negative, positive
 from leveler.sim.effects import EffectsParams
+from leveler.typed_config import non_negative, positive
 
 G_STANDARD = 9.80665
 

@@ -7,7 +7,7 @@ the displacement sensor is zeroed). The gravity term is a torque that does not d
 exactly as in the paper's quasi-static balance F L + M g sin(alpha) l_cm = K0 theta: tilt moves
 the pendulum's rest point, it does not change the pivot's restoring torque. The paper's
 tilt-dependent "stiffness" K = F L / theta therefore comes from measuring theta from the level
-zero, not from a change of the pendulum's dynamics (see leveler.stiffness).
+zero, not from a change of the pendulum's dynamics (see leveler.procedures.stiffness).
 
 The model is linear in the torque, so a run is one ZOH-discretized second-order filter over the
 torque series (scipy.signal.cont2discrete + lfilter): exact for inputs held over each sample,

@@ -13,7 +13,7 @@ null-control torque: a discrete PID at the sample rate holds phi1 at zero, which
 effectively infinite at low frequency and Kc = K2. Quasi-statically TP2 then reads
 K2 (phi2 - phi1) = F L + tau_2 and the controller balances u = -(F L + tau_A): TP1's null-control
 signal is dominated by tilt when (M1 + M2) L_cm1 >> M2 L_cm2, and the pair of readings separates
-thrust from tilt (leveler.twostage).
+thrust from tilt (leveler.procedures.two_stage).
 
 The plant is ZOH-discretized; with the PID the closed loop is one discrete linear system, run
 mode by mode (eigen-decomposition, one complex first-order lfilter per mode), so it is exact for

@@ -1,0 +1,325 @@
+"""Find what the plant model is missing: detect, fit, hold out, accept only what holds up.
+
+The loop, per round:
+1. replay the log against the current model; the residual's noise spectrum is fitted on
+   a training part (first two thirds of the usable log) and on the held-out rest;
+2. every effect not yet in the model reads its starting guesses off the residual
+   (`leveler.analysis.evidence`) and is fitted on the training part by least squares on the
+   whitened residual (`leveler.analysis.whittle`);
+3. each fit is scored on the held-out part: the gain in log-likelihood there must beat a
+   BIC penalty (k ln n) or the effect is not real; of those that pass, the best must also
+   fit the held-out part on its own with a compatible size (same sign, within 2x);
+4. the winner is refitted on the whole log, added to the model, and the round repeats;
+   when nothing passes, the search stops and says so: no effect is invented.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.optimize import least_squares, minimize_scalar
+from scipy.signal import freqz
+
+from leveler.analysis.evidence import Evidence
+from leveler.analysis.predict import (
+    Measured,
+    Predictor,
+    excitation_v,
+    pendulum_filter,
+    sensor_noise_m,
+)
+from leveler.analysis.whittle import ENBW_BINS, Whitener, deviance
+from leveler.sim.effects import EFFECTS, Effect, EffectsParams
+
+_MIN_NOISE_SHARE = 0.5
+BANDS_HZ: dict[str, tuple[float, float]] = {
+    "0.1-1 mHz": (1e-4, 1e-3),
+    "1-10 mHz": (1e-3, 1e-2),
+    "10-100 mHz": (1e-2, 1e-1),
+    "0.1-1 Hz": (1e-1, 1.0),
+    "1 Hz-Nyquist": (1.0, math.inf),
+}
+
+
+@dataclass
+class Fit:
+    effect: Effect
+    sigma: dict[str, float]
+    cost: float
+
+
+@dataclass
+class Candidate:
+    """One effect tried in one round, with the numbers that decided it."""
+
+    name: str
+    params: dict[str, Any]
+    deviance_train: float
+    deviance_test: float
+    penalty: float
+    accepted: bool = False
+    note: str = ""
+
+
+@dataclass
+class Found:
+    effect: Effect
+    sigma: dict[str, float]
+    deviance_test: float
+
+
+@dataclass
+class Diagnosis:
+    effects: list[Found]
+    model: EffectsParams
+    gap_before: dict[str, Any]
+    gap_after: dict[str, Any]
+    candidates: list[Candidate] = field(default_factory=list)
+    span_s: tuple[float, float] = (0.0, 0.0)
+    wall_s: float = 0.0
+
+
+def warmup_samples(meas: Measured, pred: Predictor) -> int:
+    """Samples to skip at the start: the log may start out of equilibrium."""
+    pe = pred.params.pendulum
+    decay_s = 2 * pe.inertia_kgm2 / max(pe.damping_nms_per_rad, 1e-12)
+    skip_s = min(max(300.0, 5 * decay_s), 0.1 * (meas.t_s[-1] - meas.t_s[0]))
+    return int(skip_s / meas.dt_s)
+
+
+def _pendulum_shape(pred: Predictor, meas: Measured, f_hz: np.ndarray) -> np.ndarray:
+    b, a = pendulum_filter(pred.params, meas.dt_s)
+    _, h = freqz(b, a, worN=f_hz, fs=1.0 / meas.dt_s)
+    dc = np.sum(b) / np.sum(a)
+    return np.abs(h / dc) ** 2
+
+
+def make_whitener(meas: Measured, pred: Predictor, span: slice) -> Whitener:
+    n = len(meas.y_m)
+    length = len(range(*span.indices(n)))
+    f = np.fft.rfftfreq(length, meas.dt_s)
+    w = Whitener(span, n, meas.dt_s, _pendulum_shape(pred, meas, f))
+    w.fit_noise(meas.y_m - pred.base.y_m)
+    return w
+
+
+def fit_effect(start: Effect, pred: Predictor, w: Whitener, meas: Measured) -> Fit:
+    """Least squares on the whitened residual over the effect's free parameters.
+
+    The magnitude of an effect that is linear in it is solved in closed form inside
+    (variable projection): the search is then only over shapes, periods, lags and
+    frequencies, which is where the local minima are. Uncertainties come from the
+    Jacobian at the optimum, with the residual's own scatter.
+    """
+    y = meas.y_m
+    white = w.whiten(y - pred.base.y_m)
+    mag = start.magnitude if start.linear else None
+    keys = tuple(k for k in start.free if k != mag)
+    theta0 = np.array([float(getattr(start, k)) for k in keys])
+    scale = np.array([start.scale(k) for k in keys])
+    lo = np.array([start.bounds(k)[0] for k in keys])
+    hi = np.array([start.bounds(k)[1] for k in keys])
+    theta0 = np.clip(theta0, lo + 1e-6 * scale, hi - 1e-6 * scale)
+    unit = start.scale(mag) if mag else 0.0
+
+    def shaped(x: np.ndarray) -> Effect:
+        return start.replace(**{k: float(v) for k, v in zip(keys, theta0 + x * scale,
+                                                             strict=True)})
+
+    def solve(x: np.ndarray) -> tuple[np.ndarray, Effect]:
+        fx = shaped(x)
+        if mag is None:
+            return w.whiten(y - pred.with_candidate(fx)), fx
+        c = w.whiten(pred.with_candidate(fx.replace(**{mag: unit})) - pred.base.y_m)
+        cc = float(c @ c)
+        beta = float(c @ white) / cc if cc > 0 else 0.0
+        lo_m, hi_m = fx.bounds(mag)
+        beta = min(max(beta * unit, lo_m), hi_m) / unit  # the optimum within the bounds
+        return white - beta * c, fx.replace(**{mag: beta * unit})
+
+    x = np.zeros(len(keys))
+    if len(keys) == 1 and theta0[0] > 0:
+        # One shape parameter (a width, a lag, a delay): a log-spaced scan over a factor
+        # of 8 either way, then a bracketed search around the best point. Least squares
+        # alone stalls on hysteresis' ridges; a delay has local minima a pendulum period
+        # apart.
+        grid = np.geomspace(max(lo[0], theta0[0] / 8), min(hi[0], theta0[0] * 8), 25)
+        xs = (grid - theta0[0]) / scale[0]
+
+        def cost(v: float) -> float:
+            return float(np.sum(solve(np.array([v]))[0] ** 2))
+
+        i = int(np.argmin([cost(v) for v in xs]))
+        best = minimize_scalar(cost, bounds=(xs[max(i - 1, 0)], xs[min(i + 1, len(xs) - 1)]),
+                               method="bounded", options={"xatol": 1e-4})
+        x = np.array([best.x])
+    if keys:
+        res = least_squares(lambda v: solve(v)[0],
+                            bounds=((lo - theta0) / scale, (hi - theta0) / scale),
+                            diff_step=1e-3, max_nfev=40 * (len(keys) + 1), x0=x)
+        x = res.x
+    e, fitted = solve(x)
+    fitted = fitted.canonical()
+    return Fit(fitted, _sigma(fitted, pred, w, meas, e), float(e @ e))
+
+
+def _sigma(fx: Effect, pred: Predictor, w: Whitener, meas: Measured,
+           e: np.ndarray) -> dict[str, float]:
+    """1-sigma uncertainties of all free parameters from a finite-difference Jacobian."""
+    keys = fx.free
+    cols = []
+    for k in keys:
+        h = 1e-3 * fx.scale(k)
+        _, hi = fx.bounds(k)
+        v = float(getattr(fx, k))
+        if v + h > hi:
+            h = -h
+        plus = w.whiten(meas.y_m - pred.with_candidate(fx.replace(**{k: v + h})))
+        cols.append((plus - e) / h)
+    jac = np.array(cols).T
+    s2 = float(e @ e) / max(len(e) - len(keys), 1) * ENBW_BINS
+    try:
+        cov = np.linalg.inv(jac.T @ jac) * s2
+        sig = np.sqrt(np.abs(np.diag(cov)))
+    except np.linalg.LinAlgError:
+        sig = np.full(len(keys), math.inf)
+    return {k: float(s) for k, s in zip(keys, sig, strict=True)}
+
+
+def _actuator_excited(meas: Measured, pred: Predictor, span: slice) -> bool:
+    """Did anything but feedback move the actuator enough to be seen at the sensor?"""
+    exc = excitation_v(meas)
+    if exc is None:  # not a leveler log: the voltage may well be a modulation
+        return True
+    p = pred.params
+    kv = p.piezo.gain_m_per_v / p.platform.support_spacing_m
+    seen = pred.pend(kv * exc)[span]
+    return float(np.std(seen)) > 3 * sensor_noise_m(p, meas.dt_s)
+
+
+def _stable(a: Effect, b: Effect) -> bool:
+    """Same effect on both parts of the log: same sign, size within a factor of 2."""
+    x, y = float(getattr(a, a.magnitude)), float(getattr(b, b.magnitude))
+    return x * y > 0 and 0.5 <= abs(y / x) <= 2.0
+
+
+def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
+    start_wall = time.perf_counter()
+    pred = Predictor(meas.config.plant, meas)
+    n = len(meas.y_m)
+    skip = warmup_samples(meas, pred)
+    split = skip + 2 * (n - skip) // 3
+    train, test, whole = slice(skip, split), slice(split, n), slice(skip, n)
+    gap_before = gap(meas, pred, whole)
+    found: list[Found] = []
+    tried: list[Candidate] = []
+    temperature = meas.sig.temperature_k is not None
+    excited = temperature or _actuator_excited(meas, pred, whole)
+    noise = sensor_noise_m(pred.params, meas.dt_s)
+    while len(found) < max_effects:
+        w_train = make_whitener(meas, pred, train)
+        w_test = make_whitener(meas, pred, test)
+        cost0_train = w_train.cost(meas.y_m - pred.base.y_m)
+        cost0_test = w_test.cost(meas.y_m - pred.base.y_m)
+        ev = Evidence(meas, pred, w_train)
+        passed: list[tuple[float, Fit, Candidate]] = []
+        for cls in EFFECTS.values():
+            if getattr(pred.effects, cls.name) is not None:
+                continue
+            if cls.needs_temperature and not temperature:
+                continue
+            if cls.needs_excitation and not excited:
+                continue
+            fits = []
+            for guess in cls.guesses(ev):
+                f = fit_effect(guess, pred, w_train, meas)
+                fits.append(f)
+                fits += [fit_effect(v, pred, w_train, meas) for v in f.effect.variants()]
+            for f in fits:
+                cost_test = w_test.cost(meas.y_m - pred.with_candidate(f.effect))
+                k = len(cls.free)
+                cand = Candidate(cls.name, f.effect.values(), deviance(cost0_train, f.cost),
+                                 deviance(cost0_test, cost_test),
+                                 k * math.log(2 * len(w_test.f_hz)))
+                tried.append(cand)
+                # Statistically real is not enough: it must also move the reading by a
+                # share of the sensor's own noise (a 70 pm drift over a night is not a
+                # finding, however well the fit pins it down).
+                if cand.deviance_test <= cand.penalty:
+                    continue
+                size = float(np.std(pred.physical_change(f.effect)[test]))
+                if size > _MIN_NOISE_SHARE * noise:
+                    passed.append((cand.deviance_test - cand.penalty, f, cand))
+                else:
+                    cand.note = f"changes the reading by only {size * 1e9:.2g} nm rms"
+        chosen = None
+        for _, f, cand in sorted(passed, key=lambda p: -p[0]):
+            check = fit_effect(f.effect, pred, w_test, meas)
+            if _stable(f.effect, check.effect):
+                chosen = (f, cand, check)
+                break
+            cand.note = (f"held-out part disagrees: {check.effect.magnitude} "
+                         f"{getattr(check.effect, check.effect.magnitude):.3g}")
+        if chosen is None:
+            break
+        f, cand, check = chosen
+        cand.accepted = True
+        # Refit on the whole log with the noise spectrum of what the effect leaves: the
+        # spectrum fitted before it was found has soaked up part of a broadband effect
+        # (a temperature coupling is red), which would blunt the fit where it matters.
+        w_whole = make_whitener(meas, pred, whole)
+        final = f
+        for _ in range(2):
+            w_whole.fit_noise(meas.y_m - pred.with_candidate(final.effect))
+            final = fit_effect(final.effect, pred, w_whole, meas)
+        # The noise model's 1-sigma misses systematic errors; how far the fits to the two
+        # parts of the log, and to the whole, disagree is an honest floor under it.
+        sigma = {k: math.hypot(v, 0.5 * f.effect.difference(check.effect, k),
+                               final.effect.difference(f.effect, k))
+                 for k, v in final.sigma.items()}
+        found.append(Found(final.effect, sigma, cand.deviance_test))
+        pred.rebase(pred.effects.with_effect(final.effect))
+    return Diagnosis(found, pred.effects, gap_before, gap(meas, pred, whole), tried,
+                     (float(meas.t_s[skip]), float(meas.t_s[-1])),
+                     time.perf_counter() - start_wall)
+
+
+def residual(meas: Measured, pred: Predictor, span: slice) -> np.ndarray:
+    """Measured minus predicted on `span`, offset removed: what the model leaves
+    unexplained."""
+    r = (meas.y_m - pred.base.y_m)[span]
+    return r - r.mean()
+
+
+def gap(meas: Measured, pred: Predictor, span: slice,
+        bands_hz: dict[str, tuple[float, float]] = BANDS_HZ) -> dict[str, Any]:
+    """Residual RMS overall and in the paper's bands (RMS and mean ASD per band)."""
+    r = residual(meas, pred, span)
+    y = meas.y_m[span] - meas.y_m[span].mean()
+    dt = meas.dt_s
+    from leveler.analysis.whittle import hann
+
+    win = hann(len(r))
+    p = np.abs(np.fft.rfft(win * r)) ** 2 * 2 * dt / np.sum(win**2)
+    f = np.fft.rfftfreq(len(r), dt)
+    df = f[1] - f[0]
+    bands: dict[str, float | None] = {}
+    asd: dict[str, float | None] = {}
+    for name, (lo, hi) in bands_hz.items():
+        sel = (f >= lo) & (f < hi)
+        if np.count_nonzero(sel) < 2:
+            bands[name] = asd[name] = None
+            continue
+        bands[name] = float(math.sqrt(np.sum(p[sel]) * df))
+        asd[name] = float(math.sqrt(np.mean(p[sel])))
+    var_y = float(np.var(y))
+    return {
+        "rms_m": float(np.sqrt(np.mean(r**2))),
+        "band_rms_m": bands,
+        "band_asd_m_rthz": asd,
+        "variance_explained": 1.0 - float(np.var(r)) / var_y if var_y > 0 else None,
+    }

@@ -1,0 +1,302 @@
+"""Open-loop prediction of a logged run: the plant model driven by what the log recorded.
+
+The model is fed the *logged* actuator voltage (valid in closed loop too: whatever the
+controller did, that is what moved the piezo) and, when the log has one, the measured
+temperature; it predicts what the sensor should have read. Everything is vectorized over
+the whole log with the same discretization the simulated plant steps with (exact ZOH of
+the linear pendulum), so a log from the simulator replays against its own model down to
+the noise.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.signal import lfilter, ss2tf
+
+from leveler.errors import LogError
+from leveler.log.reader import read_log
+from leveler.loop.pid import PID
+from leveler.settings import Config, ControllerConfig, load_config
+from leveler.sim.effects import Effect, EffectsParams, Signals
+from leveler.sim.params import PlantParams
+from leveler.sim.pendulum import PendulumModel
+from leveler.typed_config import ConfigError, build
+
+_MAX_BAD_FRACTION = 0.05
+
+
+@dataclass
+class Measured:
+    """The series of one log that replay needs, on a uniform time grid."""
+
+    path: str
+    sig: Signals
+    u_v: np.ndarray  # voltage applied to the actuator over each step
+    y_m: np.ndarray  # sensor reading
+    config: Config  # the model (and controller) the log was recorded with, or --model
+    model_source: str  # where `config` came from
+    model_text: str  # its TOML text ("" for built-in defaults)
+    bad_samples: int  # readings that were faulted or NaN, filled by interpolation
+    gains: tuple[float, float, float]  # kp, ki, kd of the logged controller
+    controller: ControllerConfig | None = None  # as logged (None: not a leveler log)
+    engaged: np.ndarray | None = None  # per sample: was the loop closed?
+    incomplete: str = ""  # why the log is incomplete, as read_log says ("" if it is not)
+
+    @property
+    def dt_s(self) -> float:
+        return self.sig.dt_s
+
+    @property
+    def t_s(self) -> np.ndarray:
+        return self.sig.t_s
+
+
+def _fill(x: np.ndarray, bad: np.ndarray) -> np.ndarray:
+    """Linear interpolation over bad samples (faults must not become data, nor holes)."""
+    if not bad.any():
+        return x
+    idx = np.arange(len(x))
+    out = x.copy()
+    out[bad] = np.interp(idx[bad], idx[~bad], x[~bad])
+    return out
+
+
+def _config_from_text(text: str, where: str) -> Config:
+    try:
+        return build(Config, tomllib.loads(text))
+    except (ConfigError, tomllib.TOMLDecodeError) as exc:
+        raise LogError(f"{where}: the config stored in the log is not valid: {exc}") from None
+
+
+def load_measured(path: str | Path, model: str | Path | None = None) -> Measured:
+    """Read a log (and the model to replay it against); clear errors for unusable logs."""
+    path = str(path)
+    data = read_log(path)
+    s = data.samples
+    n = len(s.get("t_s", ()))
+    if n < 1000:
+        early = f" (the log is incomplete: {data.stop_reason})" if not data.complete else ""
+        raise LogError(f"{path}: {n} samples; replay needs at least 1000{early}")
+    seq = s["seq"]
+    gaps = np.flatnonzero(np.diff(seq) != 1)
+    if len(gaps):
+        raise LogError(f"{path}: samples missing after seq {int(seq[gaps[0]])} "
+                       "(replay needs a contiguous log)")
+    t = s["t_s"].astype(float)
+    dt = float(np.median(np.diff(t)))
+    if not dt > 0 or np.max(np.abs(np.diff(t) - dt)) > 0.01 * dt:
+        raise LogError(f"{path}: samples are not uniformly spaced (median {dt:g} s)")
+    y = s["sensor_m"].astype(float)
+    bad = ~np.isfinite(y) | (s["status"] != 0)
+    u = s["applied_v"].astype(float)
+    bad_u = ~np.isfinite(u)
+    nbad = int(np.count_nonzero(bad | bad_u))
+    if nbad > _MAX_BAD_FRACTION * n:
+        raise LogError(f"{path}: {nbad} of {n} samples faulted or missing; too many to replay")
+    y, u = _fill(y, bad), _fill(u, bad_u)
+    temp = None
+    for table in (data.environment, data.truth):
+        if "temperature_k" in table and len(table["temperature_k"]) == n:
+            temp = table["temperature_k"].astype(float)
+            temp = _fill(temp, ~np.isfinite(temp)) if np.isfinite(temp).any() else None
+            break
+    logged_text = data.metadata.get("leveler", {}).get("config", "")
+    if model is not None:
+        cfg, text = load_config(model)
+        source = str(model)
+    elif logged_text:
+        cfg, text, source = _config_from_text(logged_text, path), logged_text, "the log's config"
+    else:
+        cfg, text, source = Config(), "", "built-in defaults (the log carries no config)"
+    logged = _config_from_text(logged_text, path) if logged_text else cfg
+    c = logged.controller
+    return Measured(path, Signals(t, dt, temp), u, y, cfg, source, text, nbad,
+                    (c.kp_v_per_m, c.ki_v_per_m_s, c.kd_v_s_per_m),
+                    c if logged_text else None, s["state"] == "engaged", data.stop_reason)
+
+
+def excitation_v(meas: Measured) -> np.ndarray | None:
+    """The part of the actuator voltage that is not the logged controller's answer to the
+    logged readings (a modulation, a hand on the knob); None if the log does not say
+    what the controller was.
+
+    Without it (and without a measured input such as the temperature) a closed loop says
+    nothing about the actuator: "the piezo did not move" and "the table moved the other
+    way" look the same, so diagnose does not look for actuator effects then.
+    """
+    if meas.controller is None or meas.engaged is None:
+        return _unexplained_by_feedback(meas)
+    pid = PID(meas.controller.pid_config())
+    y, u, on = meas.y_m.tolist(), meas.u_v.tolist(), meas.engaged.tolist()
+    out = np.empty(len(u))
+    held, was_on, dt = u[0], False, meas.dt_s
+    for n, (yn, un, engaged) in enumerate(zip(y, u, on, strict=True)):
+        if engaged:
+            if not was_on:
+                pid.engage(yn, held)
+            held = pid.update(yn, dt).command_v
+        out[n] = un - held
+        if not engaged:
+            held = un
+        was_on = engaged
+    return out
+
+
+def pendulum_filter(params: PlantParams, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """theta/phi of the ZOH-discretized linear pendulum as lfilter coefficients."""
+    pm = PendulumModel(params.pendulum, dt_s)
+    a = np.array([[pm._a11, pm._a12], [pm._a21, pm._a22]])
+    b = np.array([[pm._b1], [pm._b2]])
+    num, den = ss2tf(a, b, np.array([[1.0, 0.0]]), np.array([[0.0]]))
+    return np.ravel(num), np.ravel(den)
+
+
+@dataclass
+class Prediction:
+    """Model output for one log: before and after the sensor stage, and the piezo tilt."""
+
+    x_m: np.ndarray  # true displacement at the sensor the model expects
+    y_m: np.ndarray  # what the sensor should read
+    phi_u_rad: np.ndarray  # platform tilt the piezo made
+
+
+class Predictor:
+    """The model of one `PlantParams` applied to one log's inputs.
+
+    Caches the base prediction so a candidate effect of a late stage costs one filter and
+    an FFT, not a whole replay: that is what makes fitting a 24 h log take seconds.
+    """
+
+    def __init__(self, params: PlantParams, meas: Measured) -> None:
+        self.params = params
+        self.meas = meas
+        pe, pz = params.pendulum, params.piezo
+        self.arm_m = pe.sensor_arm_m
+        self.static_m_per_rad = pe.sensor_arm_m * pe.amplification
+        self._kv = pz.gain_m_per_v / params.platform.support_spacing_m
+        self._ref = pz.ref_v
+        self._b, self._a = pendulum_filter(params, meas.dt_s)
+        self._amp = pe.amplification
+        self.nominal_tilt = self._nominal_tilt()
+        self._transient = self.thermal_transient()
+        self.effects = params.effects
+        self.base = self.predict(self.effects)
+
+    def rebase(self, effects: EffectsParams) -> None:
+        """Make `effects` the base that candidates are added to."""
+        self.effects = effects
+        self.base = self.predict(effects)
+
+    def _nominal_tilt(self) -> np.ndarray:
+        """Disturbance tilt the nominal model can predict: thermal (if the temperature was
+        logged) and the cooler; the table's offset is unknown and left to the fit."""
+        p, sig = self.params, self.meas.sig
+        co = p.cooler
+        frac = np.mod((sig.t_s + co.phase_s) / co.period_s, 1.0)
+        rise = 1.0 - co.fall_fraction
+        shape = np.where(frac < rise, frac / rise, (1.0 - frac) / co.fall_fraction)
+        tilt = co.peak_to_peak_rad * (shape - 0.5)
+        th = p.thermal
+        if sig.temperature_k is not None and th.tilt_per_kelvin_rad_per_k != 0:
+            temp = sig.temperature_k
+            if th.lag_s > 0:
+                a = math.exp(-sig.dt_s / th.lag_s)
+                temp = lfilter([1 - a], [1, -a], temp, zi=np.array([a * temp[0]]))[0]
+            tilt = tilt + th.tilt_per_kelvin_rad_per_k * (temp - th.mean_k)
+        return tilt
+
+    def pend(self, phi: np.ndarray) -> np.ndarray:
+        """Sensor displacement [m] for platform tilt phi, starting settled at phi[0]."""
+        return self.arm_m * (self._amp * phi[0] + lfilter(self._b, self._a, phi - phi[0]))
+
+    def thermal_transient(self) -> np.ndarray | None:
+        """Shape of the thermal lag's unknown initial state (a nuisance the fit removes)."""
+        th = self.params.thermal
+        if self.meas.sig.temperature_k is None or th.lag_s <= 0:
+            return None
+        t = self.meas.t_s - self.meas.t_s[0]
+        return self.pend(np.exp(-t / th.lag_s))
+
+    def predict(self, effects: EffectsParams) -> Prediction:
+        sig, u = self.meas.sig, self.meas.u_v
+        for fx in effects.of("actuator"):
+            u = fx.apply(u, sig)
+        phi_u = self._kv * (u - self._ref)
+        phi = phi_u + self.nominal_tilt
+        for fx in effects.of("tilt"):
+            phi = phi + fx.tilt(sig)  # type: ignore[attr-defined]
+        x = self.pend(phi)
+        for fx in effects.of("response"):
+            x = x + fx.response(phi_u, self.static_m_per_rad, sig)  # type: ignore[attr-defined]
+        if self._transient is not None:
+            x = x + self._start_state(self._sensor(x, effects)) * self._transient
+        return Prediction(x, self._sensor(x, effects), phi_u)
+
+    def _start_state(self, y_pred: np.ndarray) -> float:
+        """The thermal lag's unknown state at the log's start, fitted by least squares (with
+        an offset) to what the whole prediction, sensor effects included, leaves: it decays
+        within a few lags, and fitted once here it cannot pass for a drift later on."""
+        r = self.meas.y_m - y_pred
+        a = np.column_stack([np.ones_like(r), self._transient])
+        coef, *_ = np.linalg.lstsq(a, r, rcond=None)
+        return float(coef[1])
+
+    def _sensor(self, x: np.ndarray, effects: EffectsParams) -> np.ndarray:
+        """The sensor stage, fed the displacement aligned with the readings: the table's
+        offset is unknown to the model, and a non-linear stage (a coarse lattice) needs
+        the absolute value, not just the changes."""
+        fx_sensor = effects.of("sensor")
+        if fx_sensor:
+            x = x + float(np.median(self.meas.y_m - x))
+        for fx in fx_sensor:
+            x = fx.apply(x, self.meas.sig)
+        return x
+
+    def with_candidate(self, fx: Effect) -> np.ndarray:
+        """Predicted reading of the base effects plus (or with this one replaced by) `fx`.
+
+        Tilt and response effects add linearly to the cached base; actuator effects are
+        non-linear (hysteresis) and replay in full.
+        """
+        merged = self.effects.with_effect(fx)
+        if fx.stage == "actuator" or getattr(self.effects, fx.name) is not None:
+            return self.predict(merged).y_m
+        x = self.base.x_m
+        if fx.stage == "tilt":
+            x = x + self.pend(fx.tilt(self.meas.sig))  # type: ignore[attr-defined]
+        elif fx.stage == "response":
+            x = x + fx.response(self.base.phi_u_rad, self.static_m_per_rad,  # type: ignore[attr-defined]
+                                self.meas.sig)
+        return self._sensor(x, merged)
+
+    def physical_change(self, fx: Effect) -> np.ndarray:
+        """How much adding `fx` changes the displacement (or, for a sensor effect, the
+        reading): its size, undistorted by a coarse quantizer downstream."""
+        if fx.stage == "sensor":
+            return self.with_candidate(fx) - self.base.y_m
+        return self.predict(self.effects.with_effect(fx)).x_m - self.base.x_m
+
+
+def _unexplained_by_feedback(meas: Measured) -> np.ndarray:
+    """For a log without its controller (imported data): the voltage changes a PID in
+    velocity form (du = kp de + ki e dt + kd d2e / dt) fitted to the readings cannot
+    explain, summed up. Open-loop data keeps all its changes; a closed loop's are
+    explained and leave ~0."""
+    y, u = meas.y_m, meas.u_v
+    du = np.diff(u)[1:]
+    a = np.column_stack([y[2:], np.diff(y)[1:], np.diff(y, 2)])
+    a = a / np.maximum(np.std(a, axis=0), 1e-300)
+    coef, *_ = np.linalg.lstsq(a, du, rcond=None)
+    return np.concatenate([[0.0, 0.0], np.cumsum(du - a @ coef)])
+
+
+def sensor_noise_m(params: PlantParams, dt_s: float) -> float:
+    """The model's white sensor noise per sample, ADC rounding included: the floor a replay
+    residual cannot go below, and the yardstick for "big enough to matter"."""
+    se = params.sensor
+    return math.hypot(se.noise_m_per_rthz * math.sqrt(0.5 / dt_s), se.lsb_m / math.sqrt(12))

@@ -1,0 +1,214 @@
+"""`leveler replay`: how well the plant model predicts what the sensor really saw.
+
+The metrics are those of the residual (measured minus predicted, after the unknown offset
+and the thermal lag's start are removed): RMS, RMS and mean ASD in the paper's bands, and
+the fraction of the measured variance the model explains. `--gains` asks what other gains
+would have done: the controller is rerun against the model, driven by the same
+disturbance the log implies (linear superposition: reading = logged reading + the model's
+response to the change in actuator voltage).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from leveler.analysis.diagnose import BANDS_HZ, gap, warmup_samples
+from leveler.analysis.predict import Measured, Predictor, load_measured
+from leveler.analysis.spectral import asd_at
+from leveler.errors import LogError
+from leveler.log.reader import partial_note
+from leveler.loop.pid import PID
+from leveler.sim.pendulum import PendulumModel
+from leveler.virtual import REPORT_FREQS_HZ
+
+
+def what_if(meas: Measured, pred: Predictor, gains: tuple[float, float, float]) -> np.ndarray:
+    """The sensor reading the logged run would have shown under `gains`."""
+    p = pred.params
+    cfg = dataclasses.replace(meas.config.controller, kp_v_per_m=gains[0],
+                              ki_v_per_m_s=gains[1], kd_v_s_per_m=gains[2])
+    pid = PID(cfg.pid_config())
+    pend = PendulumModel(dataclasses.replace(p.pendulum, model="linear"), meas.dt_s)
+    kv = p.piezo.gain_m_per_v / p.platform.support_spacing_m
+    arm, dt = p.pendulum.sensor_arm_m, meas.dt_s
+    lo, hi = p.piezo.min_v, p.piezo.max_v
+    max_dv = p.piezo.slew_v_per_s * dt
+    y_log, u_log = meas.y_m.tolist(), meas.u_v.tolist()
+    out = np.empty(len(y_log))
+    pid.engage(y_log[0], u_log[0])
+    u = u_log[0]
+    for n, (y0, u0) in enumerate(zip(y_log, u_log, strict=True)):
+        y = y0 + arm * pend.theta  # the model's response to the change in voltage so far
+        out[n] = y
+        target = min(max(pid.update(y, dt).command_v, lo), hi)
+        u += min(max(target - u, -max_dv), max_dv)
+        pend.step(kv * (u - u0))
+    return out
+
+
+def _asd_or_none(x: np.ndarray, fs_hz: float, f_hz: float) -> float | None:
+    try:
+        return float(asd_at(x, fs_hz, [f_hz])[0])
+    except ValueError:
+        return None
+
+
+def replay(meas: Measured, gains: tuple[float, float, float] | None = None
+           ) -> tuple[dict[str, Any], Predictor, slice]:
+    """The metrics of one replay (and the what-if), with the predictor and the analysed
+    span for whoever plots or writes it."""
+    pred = Predictor(meas.config.plant, meas)
+    skip = warmup_samples(meas, pred)
+    span = slice(skip, len(meas.y_m))
+    result: dict[str, Any] = {
+        "log": meas.path,
+        "model": meas.model_source,
+        "samples": len(meas.y_m),
+        "rate_hz": 1.0 / meas.dt_s,
+        "analysed_s": [float(meas.t_s[skip]), float(meas.t_s[-1])],
+        "temperature_logged": meas.sig.temperature_k is not None,
+        "filled_samples": meas.bad_samples,
+        "effects_in_model": [fx.name for fx in pred.effects],
+    } | gap(meas, pred, span)
+    if gains is not None:
+        fs = 1.0 / meas.dt_s
+        y_new = what_if(meas, pred, gains)[span]
+        y_old = meas.y_m[span]
+        result["what_if"] = {
+            "gains": {"kp_v_per_m": gains[0], "ki_v_per_m_s": gains[1],
+                      "kd_v_s_per_m": gains[2]},
+            "logged_gains": {"kp_v_per_m": meas.gains[0], "ki_v_per_m_s": meas.gains[1],
+                             "kd_v_s_per_m": meas.gains[2]},
+            "freq_hz": list(REPORT_FREQS_HZ),
+            "measured_asd_m_rthz": [_asd_or_none(y_old, fs, f) for f in REPORT_FREQS_HZ],
+            "predicted_asd_m_rthz": [_asd_or_none(y_new, fs, f) for f in REPORT_FREQS_HZ],
+            "predicted_rms_m": float(np.std(y_new)),
+            "measured_rms_m": float(np.std(y_old)),
+        }
+    return result, pred, span
+
+
+def write_replay_log(path: str | Path, meas: Measured, pred: Predictor) -> None:
+    """Measured, predicted and residual per sample, as an MCAP topic Foxglove can plot."""
+    from mcap.writer import CompressionType, Writer
+
+    schema = json.dumps({"title": "leveler.Replay", "type": "object", "properties": {
+        "t_s": {"type": "number", "description": "log time [s]"},
+        "measured_m": {"type": "number", "description": "logged sensor reading [m]"},
+        "predicted_m": {"type": "number", "description": "model prediction [m]"},
+        "residual_m": {"type": "number", "description": "measured - predicted [m]"}}})
+    y, yp = meas.y_m, pred.base.y_m
+    offset = float(np.median(y - yp))
+    with open(path, "wb") as fh:
+        w = Writer(fh, compression=CompressionType.ZSTD)
+        w.start("", "leveler replay")
+        sid = w.register_schema("leveler.Replay", "jsonschema", schema.encode())
+        cid = w.register_channel("/leveler/replay", "json", sid)
+        w.add_metadata("leveler", {"log": meas.path, "model": meas.model_source,
+                                    "offset_m": repr(offset)})
+        for i, (t, a, b) in enumerate(zip(meas.t_s.tolist(), y.tolist(),
+                                          (yp + offset).tolist(), strict=True)):
+            ns = max(round(t * 1e9), 0)
+            w.add_message(cid, ns, b'{"t_s":%r,"measured_m":%r,"predicted_m":%r,'
+                          b'"residual_m":%r}' % (t, a, b, a - b), ns, i)
+        w.finish()
+
+
+def plot_replay(path: str | Path, meas: Measured, pred: Predictor, span: slice,
+                title: str) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from leveler.analysis.diagnose import residual
+    from leveler.analysis.plots import block_means
+    from leveler.analysis.spectral import lpsd
+
+    fig = Figure(figsize=(9, 7), layout="constrained")
+    FigureCanvasAgg(fig)
+    top, bottom = fig.subplots(2, 1)
+    y = meas.y_m[span]
+    r = residual(meas, pred, span)
+    t, (ym, pm) = block_means(meas.t_s[span] / 3600, y, y - r)
+    top.plot(t, ym * 1e9, lw=0.8, label="measured")
+    top.plot(t, pm * 1e9, lw=0.8, label="model")
+    top.set_xlabel("time [h]")
+    top.set_ylabel("sensor [nm]")
+    top.legend()
+    top.set_title(f"{title} ({(t[1] - t[0]) * 3600:.0f} s averages)")
+    fs = 1.0 / meas.dt_s
+    for label, x in (("measured", y - y.mean()), ("residual", r)):
+        s = lpsd(x, fs)
+        bottom.loglog(s.freq_hz, s.asd, lw=1, label=label)
+    for lo, _ in BANDS_HZ.values():
+        bottom.axvline(lo, color="0.5", ls=":", lw=0.8)
+    bottom.set_xlabel("frequency [Hz]")
+    bottom.set_ylabel("ASD [m/√Hz]")
+    bottom.grid(True, which="major", alpha=0.4)
+    bottom.legend()
+    fig.savefig(path, dpi=110)
+
+
+def parse_gains(text: str) -> tuple[float, float, float]:
+    try:
+        kp, ki, kd = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected KP,KI,KD (three numbers, V/m, V/(m s), V s/m), got {text!r}") from None
+    if not all(math.isfinite(v) for v in (kp, ki, kd)):
+        raise argparse.ArgumentTypeError("gains must be finite")
+    return kp, ki, kd
+
+
+def _fmt_m(v: float | None) -> str:
+    return "   n/a" if v is None else f"{v * 1e9:8.3g}"
+
+
+def report(r: dict[str, Any]) -> str:
+    lines = [f"replay of {r['log']} against {r['model']}",
+             f"{r['samples']} samples at {r['rate_hz']:g} Hz; analysed "
+             f"{r['analysed_s'][0]:.0f}-{r['analysed_s'][1]:.0f} s; temperature "
+             f"{'used' if r['temperature_logged'] else 'not logged'}",
+             f"residual RMS {r['rms_m'] * 1e9:.3g} nm; measured variance explained "
+             f"{r['variance_explained'] * 100:.1f}%" if r["variance_explained"] is not None
+             else f"residual RMS {r['rms_m'] * 1e9:.3g} nm", "",
+             f"{'band':>12} {'residual RMS [nm]':>18} {'mean ASD [nm/rtHz]':>19}"]
+    for band in BANDS_HZ:
+        lines.append(f"{band:>12} {_fmt_m(r['band_rms_m'][band]):>18} "
+                     f"{_fmt_m(r['band_asd_m_rthz'][band]):>19}")
+    w = r.get("what_if")
+    if w:
+        g = w["gains"]
+        lines += ["", f"what if kp={g['kp_v_per_m']:g}, ki={g['ki_v_per_m_s']:g}, "
+                  f"kd={g['kd_v_s_per_m']:g} (logged: {w['logged_gains']['kp_v_per_m']:g}, "
+                  f"{w['logged_gains']['ki_v_per_m_s']:g}, {w['logged_gains']['kd_v_s_per_m']:g}):",
+                  f"{'frequency':>12} {'measured [nm/rtHz]':>19} {'predicted [nm/rtHz]':>20}"]
+        for f, a, b in zip(w["freq_hz"], w["measured_asd_m_rthz"], w["predicted_asd_m_rthz"],
+                           strict=True):
+            lines.append(f"{f * 1e3:9.1f} mHz {_fmt_m(a):>19} {_fmt_m(b):>20}")
+    return "\n".join(lines)
+
+
+def run_replay_command(args: argparse.Namespace) -> int:
+    meas = load_measured(args.log, args.model)
+    if meas.incomplete:
+        print(f"leveler replay: {partial_note(args.log, meas.incomplete, len(meas.y_m))}",
+              file=sys.stderr)
+    result, pred, span = replay(meas, args.gains)
+    if args.out:
+        if Path(args.out).resolve() == Path(args.log).resolve():
+            raise LogError(f"{args.out}: --out would overwrite the log being replayed")
+        write_replay_log(args.out, meas, pred)
+        result["out"] = args.out
+    if args.plot:
+        plot_replay(args.plot, meas, pred, span, f"replay: {Path(args.log).name}")
+        result["plot"] = args.plot
+    print(json.dumps(result) if args.json else report(result))
+    return 0

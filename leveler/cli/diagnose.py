@@ -1,0 +1,200 @@
+"""`leveler diagnose`: the findings in words, the fitted model file, and a report."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import sys
+from pathlib import Path
+from typing import Any
+
+from leveler.analysis.diagnose import BANDS_HZ, Diagnosis, diagnose
+from leveler.analysis.plots import block_means, plot_asd
+from leveler.analysis.predict import Measured, load_measured
+from leveler.daemon.persist import write_atomic
+from leveler.errors import LogError
+from leveler.log.reader import partial_note
+from leveler.settings import load_config
+from leveler.sim.effects import Effect
+
+_EFFECTS_HEADER = re.compile(r"^\s*\[plant\.effects(\.[A-Za-z0-9_]+)?\]\s*(#.*)?$")
+_ANY_HEADER = re.compile(r"^\s*\[")
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, float):
+        return repr(v) if math.isfinite(v) else ("inf" if v > 0 else "-inf")
+    return repr(v)
+
+
+def model_text(base_text: str, effects: list[Effect], source: str) -> str:
+    """The base config with its [plant.effects.*] tables replaced by the fitted ones: a
+    plain config that `leveler sim` and `leveler replay --model` read directly."""
+    kept: list[str] = []
+    skipping = False
+    for line in base_text.splitlines(keepends=True):
+        if _ANY_HEADER.match(line):
+            skipping = bool(_EFFECTS_HEADER.match(line))
+        if not skipping:
+            kept.append(line)
+    text = "".join(kept).rstrip("\n") + "\n" if kept else ""
+    text += (f"\n# Effects fitted by `leveler diagnose` ({source}); "
+             "uncertainties in the diagnose report.\n")
+    for fx in effects:
+        text += f"\n[plant.effects.{fx.name}]  # {fx.describe()}\n"
+        for key, value in fx.values().items():
+            text += f"{key} = {_toml_value(value)}\n"
+    return text
+
+
+def default_model_path(log: str | Path) -> Path:
+    p = Path(log)
+    return p.with_name(p.stem + ".fitted.toml")
+
+
+def _gap_dict(g: dict[str, Any]) -> dict[str, Any]:
+    return {"rms_m": g["rms_m"], "band_rms_m": g["band_rms_m"],
+            "band_asd_m_rthz": g["band_asd_m_rthz"],
+            "variance_explained": g["variance_explained"]}
+
+
+def headline_band(d: Diagnosis) -> str | None:
+    """The band where the model improved most (what a summary line should quote)."""
+    best, ratio = None, 1.0
+    for band in BANDS_HZ:
+        a, b = d.gap_before["band_rms_m"][band], d.gap_after["band_rms_m"][band]
+        if a and b and a / b > ratio:
+            best, ratio = band, a / b
+    return best
+
+
+def result_json(d: Diagnosis, meas: Measured, model_out: str | None) -> dict[str, Any]:
+    return {
+        "log": meas.path,
+        "model_in": meas.model_source,
+        "effects": [{"name": f.effect.name, "description": f.effect.describe(),
+                     "params": f.effect.values(),
+                     "uncertainty": f.sigma, "deviance_held_out": f.deviance_test}
+                    for f in d.effects],
+        "gap_before": _gap_dict(d.gap_before),
+        "gap_after": _gap_dict(d.gap_after),
+        "model_out": model_out,
+        "analysed_s": list(d.span_s),
+        "temperature_logged": meas.sig.temperature_k is not None,
+        "candidates": [{"name": c.name, "params": c.params,
+                        "deviance_train": c.deviance_train, "deviance_held_out": c.deviance_test,
+                        "penalty": c.penalty, "accepted": c.accepted, "note": c.note}
+                       for c in d.candidates],
+        "wall_s": d.wall_s,
+    }
+
+
+def summary(d: Diagnosis, model_out: str | None) -> str:
+    if not d.effects:
+        return ("no missing effect found: no candidate improved the held-out part of the log "
+                "beyond its complexity penalty; the model is left as it is.")
+    lines = []
+    for f in d.effects:
+        sig = ", ".join(f"{k} ± {v:.2g}" for k, v in f.sigma.items())
+        lines.append(f"missing effect: {f.effect.describe()} ({sig})")
+    band = headline_band(d)
+    if band:
+        a, b = d.gap_before["band_rms_m"][band], d.gap_after["band_rms_m"][band]
+        lines.append(f"residual RMS {a * 1e9:.3g} nm -> {b * 1e9:.3g} nm ({a / b:.1f}x) in {band}")
+    lines.append(f"residual RMS overall {d.gap_before['rms_m'] * 1e9:.3g} nm -> "
+                 f"{d.gap_after['rms_m'] * 1e9:.3g} nm")
+    if model_out:
+        lines.append(f"model updated: {model_out}")
+    return "\n".join(lines)
+
+
+def write_report(directory: Path, d: Diagnosis, meas: Measured, text: str,
+                 model_out: str | None) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from leveler.analysis.diagnose import residual
+    from leveler.analysis.predict import Predictor
+    from leveler.analysis.spectral import lpsd
+
+    directory.mkdir(parents=True, exist_ok=True)
+    before = Predictor(meas.config.plant, meas)
+    after = Predictor(meas.config.plant, meas)
+    after.rebase(d.model)
+    start = int((d.span_s[0] - meas.t_s[0]) / meas.dt_s)
+    span = slice(start, len(meas.y_m))
+    r0, r1 = residual(meas, before, span), residual(meas, after, span)
+    fs = 1.0 / meas.dt_s
+
+    plot_asd([("residual, nominal model", lpsd(r0, fs)),
+              ("residual, fitted model", lpsd(r1, fs))], directory / "residual_asd.png",
+             ylabel="residual ASD [m/√Hz]", title=f"diagnose: {Path(meas.path).name}")
+
+    fig = Figure(figsize=(9, 6), layout="constrained")
+    FigureCanvasAgg(fig)
+    top, bottom = fig.subplots(2, 1, sharex=True)
+    y = meas.y_m[span] - meas.y_m[span].mean()
+    t, avg = block_means(meas.t_s[span] / 3600, y, y - r1 + r1.mean(), r0, r1)
+    top.plot(t, avg[0] * 1e9, lw=0.8, label="measured")
+    top.plot(t, avg[1] * 1e9, lw=0.8, label="fitted model")
+    top.set_ylabel("sensor [nm]")
+    top.legend()
+    top.set_title(f"{Path(meas.path).name}: {(t[1] - t[0]) * 3600:.0f} s averages")
+    bottom.plot(t, avg[2] * 1e9, lw=0.8, label="residual, nominal")
+    bottom.plot(t, avg[3] * 1e9, lw=0.8, label="residual, fitted")
+    bottom.set_xlabel("time [h]")
+    bottom.set_ylabel("residual [nm]")
+    bottom.legend()
+    fig.savefig(directory / "timeseries.png", dpi=110)
+
+    rows = "\n".join(
+        f"| {band} | {_nm(d.gap_before['band_rms_m'][band])} | "
+        f"{_nm(d.gap_after['band_rms_m'][band])} |" for band in BANDS_HZ)
+    found = "\n".join(
+        f"- **{f.effect.name}**: {f.effect.describe()}\n"
+        + "".join(f"  - `{k}` = {getattr(f.effect, k):.6g} ± {v:.2g}\n"
+                  for k, v in f.sigma.items())
+        for f in d.effects) or "- none: the model explains the log as well as its noise allows"
+    (directory / "summary.md").write_text(
+        f"# Model diagnosis of `{Path(meas.path).name}`\n\n"
+        f"Model: {meas.model_source}. Analysed {d.span_s[0]:.0f}-{d.span_s[1]:.0f} s; "
+        f"temperature {'used' if meas.sig.temperature_k is not None else 'not logged'}.\n\n"
+        f"```\n{text}\n```\n\n## Effects found\n\n{found}\n\n"
+        f"## Gap between model and measurement (residual RMS)\n\n"
+        f"| band | nominal model [nm] | fitted model [nm] |\n|---|---|---|\n"
+        f"| all | {_nm(d.gap_before['rms_m'])} | {_nm(d.gap_after['rms_m'])} |\n{rows}\n\n"
+        f"![residual ASD](residual_asd.png)\n\n![time series](timeseries.png)\n\n"
+        f"Fitted model: `{model_out}`\n" if model_out else "")
+
+
+def _nm(v: float | None) -> str:
+    return "n/a" if v is None else f"{v * 1e9:.3g}"
+
+
+def run_diagnose_command(args: argparse.Namespace) -> int:
+    meas = load_measured(args.log, args.model)
+    if meas.incomplete:
+        print(f"leveler diagnose: {partial_note(args.log, meas.incomplete, len(meas.y_m))}",
+              file=sys.stderr)
+    d = diagnose(meas, max_effects=args.max_effects)
+    model_out = None
+    if d.effects:
+        out = Path(args.model_out) if args.model_out else default_model_path(args.log)
+        if out.resolve() == Path(args.log).resolve() or (
+                args.model and out.resolve() == Path(args.model).resolve()):
+            raise LogError(f"{out}: refusing to overwrite the log or the input model; "
+                           "choose another --model-out")
+        write_atomic(out, model_text(meas.model_text, [f.effect for f in d.effects],
+                                     f"from {Path(args.log).name}"), load_config)
+        model_out = str(out)
+    text = summary(d, model_out)
+    if args.report:
+        write_report(Path(args.report), d, meas, text, model_out)
+    print(json.dumps(result_json(d, meas, model_out)) if args.json else text)
+    return 0

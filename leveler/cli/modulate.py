@@ -1,0 +1,242 @@
+"""`leveler modulate`: square-wave tilt modulation by the piezo, run by the daemon (a logged
+procedure of the loop) or on the simulated stand, and the inverted pendulum's response to it.
+
+The response, against what the piezo geometry of the config's model predicts, checks the
+lever arm (piezo stroke / support spacing) and the pendulum's amplification on the stand.
+
+With the torsion pendulum's own step (`--tp-peak-to-peak-m`, read off the thrust stand; or
+simulated with --sim) it gives the paper's ratio (3 um on the inverted pendulum went with about
+0.4 um on the torsion pendulum) and the roll/pitch split it implies. The inverted pendulum
+senses pitch (its axis is taken as the torsion pendulum's pitch axis); the torsion pendulum
+answers M g (pitch l_cm,y + roll l_cm,x) / K0 at its arm, so with its centre-of-mass offsets
+known (`leveler calibrate-com`) the roll that went with the measured pitch follows.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from leveler.daemon.client import Client, ClientError
+from leveler.loop.modulation import Response, SquareWave, response
+from leveler.sim.torsion import TorsionParams
+from leveler.sim.torsion import simulate as simulate_tp
+
+
+def run_modulate_command(args: argparse.Namespace) -> int:
+    if args.sim:
+        result = _simulated(args)
+    else:
+        if args.config is not None:
+            raise ClientError("--config goes with --sim (the daemon uses its own config)")
+        result = _on_daemon(args)
+    tp_pp = result.pop("tp_simulated_peak_to_peak_m", args.tp_peak_to_peak_m)
+    if tp_pp is not None:
+        result["tp"] = _torsion(result, tp_pp, _tp_params(args))
+    if args.json:
+        print(json.dumps(result))
+    else:
+        print(_report(result))
+    return 0
+
+
+def _tp_params(args: argparse.Namespace) -> TorsionParams:
+    base = TorsionParams()
+    return replace(base, com_x_m=args.tp_com_x_m,
+                   com_y_m=base.com_y_m if args.tp_com_y_m is None else args.tp_com_y_m)
+
+
+def _torsion(r: dict[str, Any], tp_pp_m: float, tp: TorsionParams) -> dict[str, Any]:
+    """The IP/TP ratio, and the roll that the TP's step implies next to the IP's pitch."""
+    pitch = r["tilt_peak_to_peak_rad"]
+    per_rad = tp.arm_m * tp.mass_kg * tp.gravity_m_per_s2 / tp.stiffness_nm_per_rad
+    out: dict[str, Any] = {"peak_to_peak_m": tp_pp_m, "ip_over_tp": r["ip_peak_to_peak_m"]
+                           / tp_pp_m, "pitch_only_peak_to_peak_m": per_rad * pitch * tp.com_y_m,
+                           "com_x_m": tp.com_x_m, "com_y_m": tp.com_y_m}
+    if tp.com_x_m:
+        roll = (tp_pp_m / per_rad - pitch * tp.com_y_m) / tp.com_x_m
+        out |= {"roll_peak_to_peak_rad": roll, "roll_over_pitch": roll / pitch,
+                "tilt_axis_deg": math.degrees(math.atan2(roll, pitch))}
+    return out
+
+
+def _on_daemon(args: argparse.Namespace) -> dict[str, Any]:
+    """Ask the daemon to run the wave, follow it on the watch stream, then measure."""
+    with Client(args.socket) as client:
+        reply = client.request("modulate", amplitude_v=args.amplitude_v, period_s=args.period,
+                               cycles=args.cycles, force=args.force)
+    wave = SquareWave(**reply["wave"])
+    print(f"modulating: {wave.cycles} x {wave.period_s:g} s, piezo {wave.center_v:.3f} V "
+          f"+- {wave.amplitude_v:g} V; ends in {wave.end_t_s - wave.start_t_s:.0f} s "
+          "(Ctrl-C leaves it running; `leveler stop` aborts it)", file=sys.stderr, flush=True)
+    t, y, v = [], [], []
+    with Client(args.socket) as client:
+        for s in client.watch(reply["rate_hz"]):
+            if s["t_s"] < wave.start_t_s:
+                continue
+            if s["state"] != "modulating":
+                if s["t_s"] < wave.end_t_s - 1.5 / reply["rate_hz"]:
+                    raise ClientError(f"the modulation ended early: the daemon is {s['state']} "
+                                      "(`leveler status` says why)")
+                break
+            t.append(s["t_s"])
+            y.append(np.nan if s["sensor_m"] is None else s["sensor_m"])
+            v.append(np.nan if s["applied_v"] is None else s["applied_v"])
+    return _result(wave, np.array(t), np.array(y), np.array(v), reply["model"], "daemon")
+
+
+def _simulated(args: argparse.Namespace) -> dict[str, Any]:
+    """The same procedure on the simulated stand in virtual time: idle for --settle, then
+    the wave, with the true platform tilt (known only here) next to the reading."""
+    from leveler.loop.clock import VirtualClock
+    from leveler.loop.cycle import IDLE, Loop
+    from leveler.loop.pid import PID
+    from leveler.records import Event, Sample, Truth
+    from leveler.settings import load_config
+    from leveler.stand import open_stand
+
+    cfg, _ = load_config(args.config or "config/sim.toml")
+    if cfg.sensor.backend != "sim":
+        raise ClientError(f"{args.config}: --sim needs the simulated backend; to modulate "
+                          "hardware, run the daemon and leave out --sim")
+    stand = open_stand(cfg, seed=cfg.sim.seed if args.seed is None else args.seed)
+    stand.connect()
+
+    class Recorder:
+        def __init__(self) -> None:
+            self.rows: list[tuple[float, float, float]] = []
+            self.tilt_rad: list[float] = []
+
+        def sample(self, s: Sample, log_time_ns: int) -> None:
+            self.rows.append((s.t_s, s.sensor_m, s.applied_v))
+
+        def truth(self, tr: Truth, log_time_ns: int) -> None:
+            self.tilt_rad.append(tr.tilt_rad)
+
+        def event(self, e: Event, log_time_ns: int) -> None:
+            pass
+
+    rec = Recorder()
+    dt = 1.0 / cfg.loop.rate_hz
+    loop = Loop(stand.sensor, stand.actuator, PID(cfg.controller.pid_config()), dt, [rec],
+                stand.truth, policy=cfg.loop)
+    clock = VirtualClock(dt, start_wall_ns=0)
+    t = clock.tick()
+    loop.cycle(t, 0)
+    while t < args.settle:
+        t = clock.tick()
+        loop.cycle(t, 0)
+    t = clock.tick()
+    try:
+        wave = loop.modulate(t, args.amplitude_v, args.period, args.cycles)
+    except ValueError as exc:
+        raise ClientError(f"modulate: {exc}") from None
+    first = len(rec.rows)
+    loop.cycle(t, 0)
+    while loop.state != IDLE:
+        t = clock.tick()
+        loop.cycle(t, 0)
+    rows = np.array(rec.rows[first:])
+    pend, pz = cfg.plant.pendulum, cfg.plant.piezo
+    model = {"sensor_m_per_rad": pend.amplification * pend.sensor_arm_m,
+             "tilt_rad_per_v": pz.gain_m_per_v / cfg.plant.platform.support_spacing_m}
+    result = _result(wave, rows[:, 0], rows[:, 1], rows[:, 2], model, "simulated stand")
+    pitch = np.array(rec.tilt_rad[first:])
+    result["true_tilt_peak_to_peak_rad"] = response(wave, rows[:, 0], pitch).peak_to_peak
+    # The torsion pendulum on the same platform: the piezo tilts it along an axis at
+    # --tilt-axis-deg from its pitch axis, so its roll is pitch x tan(angle) of the piezo's part.
+    piezo_pitch = (rows[:, 2] - pz.ref_v) * model["tilt_rad_per_v"]
+    roll = piezo_pitch * math.tan(math.radians(args.tilt_axis_deg))
+    tp = _tp_params(args)
+    theta = simulate_tp(tp, dt, 0.0, pitch, roll)
+    result["tp_simulated_peak_to_peak_m"] = response(wave, rows[:, 0],
+                                                     theta * tp.arm_m).peak_to_peak
+    result["tilt_axis_deg_simulated"] = args.tilt_axis_deg
+    if args.plot:
+        _plot(args.plot, wave, rows[:, 0], rows[:, 1], rows[:, 2])
+        result["plot"] = args.plot
+    return result
+
+
+def _result(wave: SquareWave, t: np.ndarray, y: np.ndarray, v: np.ndarray,
+            model: dict[str, float], where: str) -> dict[str, Any]:
+    ip: Response = response(wave, t, y)
+    piezo = response(wave, t, v)
+    expected_tilt = piezo.peak_to_peak * model["tilt_rad_per_v"]
+    tilt = ip.peak_to_peak / model["sensor_m_per_rad"]
+    return {
+        "where": where,
+        "wave": {"center_v": wave.center_v, "amplitude_v": wave.amplitude_v,
+                 "period_s": wave.period_s, "cycles": wave.cycles},
+        "samples": len(t),
+        "piezo_peak_to_peak_v": piezo.peak_to_peak,
+        "ip_peak_to_peak_m": ip.peak_to_peak,
+        "ip_scatter_m": ip.scatter,
+        "ip_steps": ip.steps,
+        "ip_m_per_v": ip.peak_to_peak / piezo.peak_to_peak,
+        "tilt_peak_to_peak_rad": tilt,
+        "model": model,
+        "model_tilt_peak_to_peak_rad": expected_tilt,
+        "measured_over_model": tilt / expected_tilt,
+    }
+
+
+def _report(r: dict[str, Any]) -> str:
+    w = r["wave"]
+    lines = [
+        f"tilt modulation on the {r['where']}: {w['cycles']} x {w['period_s']:g} s square wave, "
+        f"piezo {w['center_v']:.3f} V +- {w['amplitude_v']:g} V ({r['samples']} samples)",
+        f"inverted pendulum  {r['ip_peak_to_peak_m'] * 1e6:.4g} um peak to peak "
+        f"(+- {r['ip_scatter_m'] * 1e6:.2g} um over {r['ip_steps']} steps) for "
+        f"{r['piezo_peak_to_peak_v']:.4g} V on the piezo: {r['ip_m_per_v'] * 1e6:.4g} um/V",
+        f"platform tilt      {r['tilt_peak_to_peak_rad'] * 1e6:.4g} urad peak to peak through "
+        f"the model's {r['model']['sensor_m_per_rad']:.4g} m/rad (amplification x arm)",
+        f"piezo geometry     predicts {r['model_tilt_peak_to_peak_rad'] * 1e6:.4g} urad "
+        f"(stroke / support spacing): measured / model = {r['measured_over_model']:.3f}",
+    ]
+    if "true_tilt_peak_to_peak_rad" in r:
+        lines.append(f"true tilt          {r['true_tilt_peak_to_peak_rad'] * 1e6:.4g} urad peak "
+                     "to peak (simulation only, out of loop)")
+    if "tp" in r:
+        tp = r["tp"]
+        lines.append(f"torsion pendulum   {tp['peak_to_peak_m'] * 1e6:.4g} um peak to peak: "
+                     f"inverted / torsion = {tp['ip_over_tp']:.3g} (paper: about 3 / 0.4 = 7.5); "
+                     f"pitch alone would give {tp['pitch_only_peak_to_peak_m'] * 1e6:.4g} um "
+                     f"(l_cm,y {tp['com_y_m'] * 1e3:.3g} mm)")
+        if "roll_over_pitch" in tp:
+            lines.append(f"roll/pitch split   roll {tp['roll_peak_to_peak_rad'] * 1e6:.4g} urad "
+                         f"with the pitch: roll/pitch = {tp['roll_over_pitch']:.3g}, tilt axis "
+                         f"{tp['tilt_axis_deg']:.1f} deg from pitch (l_cm,x "
+                         f"{tp['com_x_m'] * 1e3:.3g} mm)"
+                         + (f"; simulated {r['tilt_axis_deg_simulated']:g} deg"
+                            if "tilt_axis_deg_simulated" in r else ""))
+        else:
+            lines.append("roll/pitch split   needs l_cm,x (--tp-com-x-m, from calibrate-com)")
+    if "plot" in r:
+        lines.append(f"plot               {r['plot']}")
+    return "\n".join(lines)
+
+
+def _plot(path: str, wave: SquareWave, t: np.ndarray, y: np.ndarray, v: np.ndarray) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(8, 5))
+    FigureCanvasAgg(fig)
+    ax1, ax2 = fig.subplots(2, 1, sharex=True)
+    ax1.plot(t - wave.start_t_s, y * 1e6, lw=0.8)
+    ax1.set_ylabel("inverted pendulum [um]")
+    ax1.set_title(f"square-wave tilt modulation, {wave.period_s:g} s, +-{wave.amplitude_v:g} V")
+    ax2.plot(t - wave.start_t_s, v, lw=0.8, color="C1")
+    ax2.set_ylabel("piezo [V]")
+    ax2.set_xlabel("time since the wave started [s]")
+    for ax in (ax1, ax2):
+        ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
