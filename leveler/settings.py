@@ -9,87 +9,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+from leveler.daemon.control_server import ControlConfig
 from leveler.drivers.modbus_config import ModbusActuatorConfig, ModbusSensorConfig
 from leveler.drivers.nidaq_config import NidaqActuatorConfig, NidaqSensorConfig
 from leveler.drivers.serial_config import SerialPiezoConfig, SerialSensorConfig
 from leveler.drivers.simulated import FaultSpec
-from leveler.loop.pid import PIDConfig, PIDGains
+from leveler.log.rotate import LogConfig
+from leveler.loop.cycle import LoopConfig
+from leveler.loop.pid import ControllerConfig
 from leveler.sim.params import PlantParams
-from leveler.typed_config import ConfigError, build, load_toml, non_negative, positive
-
-
-@dataclass(frozen=True, slots=True)
-class LoopConfig:
-    rate_hz: float = positive(10.0)
-    status_interval_s: float = positive(5.0)
-    engage_on_start: bool = True
-    ready_samples: int = field(default=10, metadata={"ge": 1})
-    fault_after_errors: int = field(default=3, metadata={"ge": 1})
-    fault_after_bad_readings: int = field(default=50, metadata={"ge": 1})
-    stuck_after_samples: int = field(default=0, metadata={"ge": 0})
-    max_step_m: float = non_negative(0.0)
-    spike_reject_max: int = field(default=3, metadata={"ge": 1})
-    resume_after_good_samples: int = field(default=10, metadata={"ge": 1})
-    reconnect_min_s: float = positive(2.0)
-    reconnect_max_s: float = positive(60.0)
-    resume_after_reconnect: bool = True
-
-
-@dataclass(frozen=True, slots=True)
-class ControlConfig:
-    """The control socket: where it lives and who may use it."""
-
-    socket_path: str = ""
-    group: str = ""
-    max_clients: int = field(default=16, metadata={"ge": 1, "le": 1024})
-    # any uid but root's and the daemon's own: one user cannot lock the others out
-    max_clients_per_uid: int = field(default=8, metadata={"ge": 1, "le": 1024})
-    idle_timeout_s: float = positive(60.0)
-
-
-@dataclass(frozen=True, slots=True)
-class LogConfig:
-    dir: str = "logs"
-    chunk_interval_s: float = positive(1.0)
-    compression: Literal["zstd", "lz4", "none"] = "zstd"
-    rotate_interval_s: float = positive(86400.0)
-    rotate_bytes: int = field(default=1 << 30, metadata={"ge": 1 << 16})
-    retry_interval_s: float = positive(5.0)
-
-
-@dataclass(frozen=True, slots=True)
-class ControllerConfig:
-    """PID from sensor metres to actuator volts; error = setpoint - reading."""
-
-    kp_v_per_m: float = 0.0
-    ki_v_per_m_s: float = 7.0e5
-    kd_v_s_per_m: float = 0.0
-    setpoint_m: float = 0.0
-    output_min_v: float = 0.0
-    output_max_v: float = 150.0
-    slew_v_per_s: float = positive(10.0, allow_inf=True)
-    d_filter_tau_s: float = non_negative(0.5)
-    setpoint_ramp_m_per_s: float = positive(math.inf, allow_inf=True)
-    tracking_time_s: float = non_negative(0.0)
-
-    def __post_init__(self) -> None:
-        if not self.output_min_v < self.output_max_v:
-            raise ValueError(
-                f"output_min_v ({self.output_min_v}) must be below "
-                f"output_max_v ({self.output_max_v})"
-            )
-
-    def pid_config(self) -> PIDConfig:
-        return PIDConfig(
-            gains=PIDGains(self.kp_v_per_m, self.ki_v_per_m_s, self.kd_v_s_per_m),
-            output_min_v=self.output_min_v,
-            output_max_v=self.output_max_v,
-            setpoint_m=self.setpoint_m,
-            slew_v_per_s=self.slew_v_per_s,
-            d_filter_tau_s=self.d_filter_tau_s,
-            setpoint_ramp_m_per_s=self.setpoint_ramp_m_per_s,
-            tracking_time_s=self.tracking_time_s,
-        )
+from leveler.typed_config import ConfigError, build, load_toml, non_negative
 
 
 @dataclass(frozen=True, slots=True)

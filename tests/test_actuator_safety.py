@@ -17,8 +17,8 @@ from hypothesis import strategies as st
 from leveler.drivers.base import DriverError, Reading, Status
 from leveler.loop.clock import VirtualClock
 from leveler.loop.cycle import FAULT, Loop
-from leveler.loop.pid import PID, PIDGains
-from leveler.settings import Config, ControllerConfig
+from leveler.loop.pid import PID, ControllerConfig, PIDGains
+from leveler.settings import Config
 from leveler.stand import open_stand
 
 DT_S = 0.1

@@ -20,8 +20,8 @@ from scipy.signal import lfilter, ss2tf
 
 from leveler.errors import LogError
 from leveler.log.reader import read_log
-from leveler.loop.pid import PID
-from leveler.settings import Config, ControllerConfig, load_config
+from leveler.loop.pid import PID, ControllerConfig
+from leveler.settings import Config, load_config
 from leveler.sim.effects import Effect, EffectsParams, Signals
 from leveler.sim.params import PlantParams
 from leveler.sim.pendulum import PendulumModel

@@ -36,11 +36,26 @@ from datetime import UTC, datetime, timedelta
 from functools import partial
 from pathlib import Path
 from queue import SimpleQueue
+from typing import Literal
 
 from leveler.log.reader import LogError
 from leveler.log.writer import LogWriter
 from leveler.records import Event, Sample, Truth
 from leveler.rt import background_thread
+from leveler.typed_config import positive
+
+
+@dataclass(frozen=True, slots=True)
+class LogConfig:
+    """[log]: where files go, how often a chunk is closed (what a crash can lose), rotation."""
+
+    dir: str = "logs"
+    chunk_interval_s: float = positive(1.0)
+    compression: Literal["zstd", "lz4", "none"] = "zstd"
+    rotate_interval_s: float = positive(86400.0)
+    rotate_bytes: int = field(default=1 << 30, metadata={"ge": 1 << 16})
+    retry_interval_s: float = positive(5.0)
+
 
 _log = logging.getLogger(__name__)
 

@@ -13,13 +13,34 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import Protocol
 
 from leveler.drivers.base import Actuator, Block, DriverError, Reading, Sensor, Status
 from leveler.loop.modulation import SquareWave
 from leveler.loop.pid import PID
 from leveler.records import Event, Sample, Truth
-from leveler.settings import LoopConfig
+from leveler.typed_config import non_negative, positive
+
+
+@dataclass(frozen=True, slots=True)
+class LoopConfig:
+    """[loop]: the cycle's rate, status cadence, and when bad readings fault and resume."""
+
+    rate_hz: float = positive(10.0)
+    status_interval_s: float = positive(5.0)
+    engage_on_start: bool = True
+    ready_samples: int = field(default=10, metadata={"ge": 1})
+    fault_after_errors: int = field(default=3, metadata={"ge": 1})
+    fault_after_bad_readings: int = field(default=50, metadata={"ge": 1})
+    stuck_after_samples: int = field(default=0, metadata={"ge": 0})
+    max_step_m: float = non_negative(0.0)
+    spike_reject_max: int = field(default=3, metadata={"ge": 1})
+    resume_after_good_samples: int = field(default=10, metadata={"ge": 1})
+    reconnect_min_s: float = positive(2.0)
+    reconnect_max_s: float = positive(60.0)
+    resume_after_reconnect: bool = True
+
 
 IDLE, ENGAGED, FAULT, MODULATING = "idle", "engaged", "fault", "modulating"
 ERROR_EVENT_INTERVAL_S = 1.0  # at most one driver_error event per second; the counts are exact

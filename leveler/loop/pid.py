@@ -22,6 +22,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 
+from leveler.typed_config import non_negative, positive
+
 _INF = math.inf
 
 # Back-calculation gain per sample when kp == 0 leaves no time scale to derive the tracking
@@ -85,6 +87,42 @@ class PIDConfig:
         _require_non_negative("d_filter_tau_s", self.d_filter_tau_s)
         _require_rate("setpoint_ramp_m_per_s", self.setpoint_ramp_m_per_s)
         _require_non_negative("tracking_time_s", self.tracking_time_s)
+
+
+
+@dataclass(frozen=True, slots=True)
+class ControllerConfig:
+    """PID from sensor metres to actuator volts; error = setpoint - reading."""
+
+    kp_v_per_m: float = 0.0
+    ki_v_per_m_s: float = 7.0e5
+    kd_v_s_per_m: float = 0.0
+    setpoint_m: float = 0.0
+    output_min_v: float = 0.0
+    output_max_v: float = 150.0
+    slew_v_per_s: float = positive(10.0, allow_inf=True)
+    d_filter_tau_s: float = non_negative(0.5)
+    setpoint_ramp_m_per_s: float = positive(math.inf, allow_inf=True)
+    tracking_time_s: float = non_negative(0.0)
+
+    def __post_init__(self) -> None:
+        if not self.output_min_v < self.output_max_v:
+            raise ValueError(
+                f"output_min_v ({self.output_min_v}) must be below "
+                f"output_max_v ({self.output_max_v})"
+            )
+
+    def pid_config(self) -> PIDConfig:
+        return PIDConfig(
+            gains=PIDGains(self.kp_v_per_m, self.ki_v_per_m_s, self.kd_v_s_per_m),
+            output_min_v=self.output_min_v,
+            output_max_v=self.output_max_v,
+            setpoint_m=self.setpoint_m,
+            slew_v_per_s=self.slew_v_per_s,
+            d_filter_tau_s=self.d_filter_tau_s,
+            setpoint_ramp_m_per_s=self.setpoint_ramp_m_per_s,
+            tracking_time_s=self.tracking_time_s,
+        )
 
 
 @dataclass(slots=True)
