@@ -13,8 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from leveler import __version__, importcsv
+from leveler import __version__
 from leveler.cli.main import main
+from leveler.log import import_csv as importcsv
 from leveler.log.reader import read_log
 from leveler.log.writer import LogWriter
 

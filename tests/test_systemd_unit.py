@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
+from leveler.daemon import install
 from leveler.daemon.install import InstallError, install_service, render_unit
-from leveler.daemon.service import install
 
 REPO = Path(__file__).resolve().parents[1]
 VENV_LEVELER = Path(sys.prefix) / "bin" / "leveler"
