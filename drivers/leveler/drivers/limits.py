@@ -28,3 +28,23 @@ def limit_command(command_v: float, last_v: float, dt_s: float, min_v: float, ma
     clamped into `slew_window`. For outputs that need no quantization (a DAQ's AO)."""
     lo, hi = slew_window(last_v, dt_s, min_v, max_v, slew_v_per_s)
     return min(max(last_v if math.isnan(command_v) else command_v, lo), hi)
+
+
+def check_piezo_range(min_v: float, max_v: float, safe_v: float, amplifier_gain: float,
+                      out_lo_v: float, out_hi_v: float, out_name: str) -> None:
+    """A piezo range [min_v, max_v] with safe_v inside it, reachable through an amplifier of
+    `amplifier_gain` from an analog output spanning [out_lo_v, out_hi_v] (named `out_name`
+    in the error). Checked when the config is built, so a lab learns it before the stand
+    moves."""
+    if not min_v < max_v:
+        raise ValueError(f"min_v ({min_v} V) must be below max_v ({max_v} V)")
+    if not min_v <= safe_v <= max_v:
+        raise ValueError(f"safe_v ({safe_v} V) must lie in [min_v, max_v] = "
+                         f"[{min_v}, {max_v}] V")
+    need_lo, need_hi = min_v / amplifier_gain, max_v / amplifier_gain
+    tol = 1e-9 * (out_hi_v - out_lo_v)
+    if need_lo < out_lo_v - tol or need_hi > out_hi_v + tol:
+        raise ValueError(
+            f"piezo range [{min_v}, {max_v}] V needs the AO to span "
+            f"[{need_lo:.4g}, {need_hi:.4g}] V at amplifier_gain {amplifier_gain}, "
+            f"but {out_name} [{out_lo_v}, {out_hi_v}] V")

@@ -15,6 +15,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Literal
 
+from leveler.drivers.limits import check_piezo_range
 from leveler.typed_config import positive
 
 MAX_REGISTER = 0xFFFF
@@ -150,18 +151,8 @@ class ModbusActuatorConfig(ModbusChannelConfig):
 
     def __post_init__(self) -> None:
         ModbusChannelConfig.__post_init__(self)
-        if not self.min_v < self.max_v:
-            raise ValueError(f"min_v ({self.min_v} V) must be below max_v ({self.max_v} V)")
-        if not self.min_v <= self.safe_v <= self.max_v:
-            raise ValueError(f"safe_v ({self.safe_v} V) must lie in [min_v, max_v] = "
-                             f"[{self.min_v}, {self.max_v}] V")
-        need_lo, need_hi = self.min_v / self.amplifier_gain, self.max_v / self.amplifier_gain
-        tol = 1e-9 * (self.value_at_max - self.value_at_min)
-        if need_lo < self.value_at_min - tol or need_hi > self.value_at_max + tol:
-            raise ValueError(
-                f"piezo range [{self.min_v}, {self.max_v}] V needs the AO to span "
-                f"[{need_lo:.4g}, {need_hi:.4g}] V at amplifier_gain {self.amplifier_gain}, "
-                f"but it spans [{self.value_at_min}, {self.value_at_max}] V")
+        check_piezo_range(self.min_v, self.max_v, self.safe_v, self.amplifier_gain,
+                          self.value_at_min, self.value_at_max, "it spans")
         count_v = self.amplifier_gain * self.volts_per_count
         if self.max_v - self.min_v < count_v:
             raise ValueError(f"piezo range [{self.min_v}, {self.max_v}] V is narrower than "

@@ -15,6 +15,7 @@ import re
 from dataclasses import dataclass
 from typing import Literal
 
+from leveler.drivers.limits import check_piezo_range
 from leveler.typed_config import positive
 
 # One physical channel, "device/line": no lists ("a,b") or ranges ("ai0:3"), which would
@@ -89,18 +90,8 @@ class NidaqActuatorConfig(NidaqChannelConfig):
         elif not _AO_LINE.fullmatch(self.channel.split("/", 1)[1]):
             raise ValueError(f"readback_channel: cannot derive an internal channel from "
                              f"channel {self.channel!r}; name the AI that measures the AO")
-        if not self.min_v < self.max_v:
-            raise ValueError(f"min_v ({self.min_v} V) must be below max_v ({self.max_v} V)")
-        if not self.min_v <= self.safe_v <= self.max_v:
-            raise ValueError(f"safe_v ({self.safe_v} V) must lie in [min_v, max_v] = "
-                             f"[{self.min_v}, {self.max_v}] V")
-        need_lo, need_hi = self.min_v / self.amplifier_gain, self.max_v / self.amplifier_gain
-        tol = 1e-9 * (self.range_max_v - self.range_min_v)
-        if need_lo < self.range_min_v - tol or need_hi > self.range_max_v + tol:
-            raise ValueError(
-                f"piezo range [{self.min_v}, {self.max_v}] V needs the AO to span "
-                f"[{need_lo:.4g}, {need_hi:.4g}] V at amplifier_gain {self.amplifier_gain}, "
-                f"but range_min_v..range_max_v is [{self.range_min_v}, {self.range_max_v}] V")
+        check_piezo_range(self.min_v, self.max_v, self.safe_v, self.amplifier_gain,
+                          self.range_min_v, self.range_max_v, "range_min_v..range_max_v is")
 
     @property
     def readback(self) -> str:
