@@ -9,6 +9,7 @@ reversals), and whether the raw readings sit on a lattice coarser than the model
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -83,7 +84,7 @@ class Evidence:
     def contribution(self, fx: Effect) -> np.ndarray:
         return self.pred.with_candidate(fx) - self.pred.base.y_m
 
-    def best_linear(self, starts: list[Effect], amp_key: str | None, keep: int) -> list[Effect]:
+    def best_linear(self, starts: Sequence[Effect], amp_key: str | None, keep: int) -> list[Effect]:
         """Each start with its amplitude solved by whitened least squares (or as it is if
         amp_key is None); the `keep` that leave the smallest cost."""
         scored: list[tuple[float, Effect]] = []
@@ -138,3 +139,7 @@ class Evidence:
     def noise_std_m(self) -> float:
         """The model's white sensor noise per sample."""
         return self.pred.params.sensor.noise_m_per_rthz * math.sqrt(0.5 / self.sig.dt_s)
+
+    def natural_frequency_hz(self) -> float:
+        """The model pendulum's: a line near it means its frequency or Q is off."""
+        return self.pred.params.pendulum.natural_frequency_hz

@@ -20,18 +20,15 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, fields
-from typing import TYPE_CHECKING, Any, ClassVar, Literal
+from typing import Any, ClassVar, Literal, Protocol
 
 import numpy as np
 from scipy.signal import cont2discrete, lfilter
 from scipy.special import ndtr
 
 from leveler.typed_config import non_negative, positive
-
-if TYPE_CHECKING:
-    from leveler.analysis.evidence import Evidence
 
 Stage = Literal["actuator", "tilt", "response", "sensor"]
 
@@ -43,6 +40,24 @@ class Signals:
     t_s: np.ndarray
     dt_s: float
     temperature_k: np.ndarray | None = None
+
+
+class Evidence(Protocol):
+    """What `guesses` reads off a replay residual. leveler.analysis.evidence provides it; a
+    Protocol here, so that the plant model imports nothing of the analysis."""
+
+    @property
+    def sig(self) -> Signals: ...
+    def fmin_hz(self) -> float: ...
+    def peaks(self, fmin_hz: float, fmax_hz: float, most: int = 3) -> list[float]: ...
+    def best_linear(self, starts: Sequence[Effect], amp_key: str | None,
+                    keep: int) -> list[Effect]: ...
+    def best_phase(self, template: Effect, phase_key: str, period_s: float,
+                   amp_key: str, steps: int = 12) -> list[Effect]: ...
+    def command_spread_v(self) -> float: ...
+    def lattice(self) -> tuple[float, float] | None: ...
+    def noise_std_m(self) -> float: ...
+    def natural_frequency_hz(self) -> float: ...
 
 
 class Effect:
@@ -438,7 +453,7 @@ class ExtraResonance(Effect):
     @classmethod
     def guesses(cls, ev: Evidence) -> list[Effect]:
         nyquist = 0.5 / ev.sig.dt_s
-        f0 = ev.pred.params.pendulum.natural_frequency_hz
+        f0 = ev.natural_frequency_hz()
         # Near the pendulum's own resonance a line means its frequency or Q is off (the
         # baseline), not a second mode.
         starts = [cls(frequency_hz=f, q=q) for f in ev.peaks(0.02, 0.9 * nyquist)
