@@ -20,7 +20,7 @@ from pathlib import Path
 
 from leveler.daemon.persist import write_atomic
 
-SOURCE = Path(__file__).resolve().parents[1]
+SOURCE = Path(__file__).resolve().parents[2]  # the checkout: leveler/daemon/install.py
 UNIT_NAME = "leveler.service"
 STATE_DIR = "/var/lib/leveler"
 # The canonical unit names these; render_unit() substitutes the installed paths.
