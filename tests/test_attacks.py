@@ -144,6 +144,27 @@ def test_tune_refuses_gains_the_model_predicts_unstable_unless_forced(
     assert forced.returncode == 0, forced.stderr
     assert status(d)["controller"]["kd_v_s_per_m"] == 0.0
     d.stop()
+    tunes = [e["reason"] for e in events(d, "tune")]
+    assert tunes[-1].endswith("(--force: no stability check)"), tunes
+    assert not any("--force" in r for r in tunes[:-1]), tunes
+
+
+def test_a_file_cut_mid_line_at_its_end_is_refused(start_daemon) -> None:  # type: ignore[no-untyped-def]
+    """Found by a second attack: a file whose last line is cut inside a number is still
+    valid TOML and sets every key (`idle_timeout_s = 60.0` -> `= 6`); a reload applied it.
+    A whole file ends with a newline."""
+    d = start_daemon(rate_hz=10.0, control="idle_timeout_s = 60.0\n")
+    good = d.config.read_text()
+    assert good.endswith("idle_timeout_s = 60.0\n")
+    d.config.write_text(good[:-len("0.0\n")])
+    refused = d.cli("reload")
+    assert refused.returncode == 2 and "Traceback" not in refused.stderr
+    assert "ends mid-line (no newline after 'idle_timeout_s = 6')" in refused.stderr
+    d.proc.send_signal(signal.SIGHUP)
+    time.sleep(1.5)  # the reload is checked (and refused) on a thread of its own
+    err = d.stop()
+    assert err.count("reload rejected, keeping the running config") == 2, err
+    assert [e["reason"].split(":")[0] for e in events(d, "reload")] == ["rejected"] * 2
 
 
 # ---- 2. a watcher at 1e-6 Hz -------------------------------------------------------------
@@ -282,6 +303,39 @@ def test_one_user_cannot_take_every_slot(start_daemon) -> None:  # type: ignore[
     d.stop()
 
 
+@ROOT_ONLY
+def test_group_members_together_cannot_lock_root_out(start_daemon) -> None:  # type: ignore[no-untyped-def]
+    """Found by a second attack: two members of the daemon's group, eight connections each,
+    took all 16 slots and root's `status` got "too many clients" for as long as they stayed.
+    Two slots are kept for root and the daemon's user."""
+    d = start_daemon(rate_hz=10.0)
+    os.chmod(d.socket.parent, 0o755)
+    root_done = d.socket.parent / "root-status-done"
+
+    def hold_eight() -> str:
+        held = []
+        for _ in range(8):
+            s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            s.connect(str(d.socket))
+            held.append(s)
+        deadline = time.monotonic() + 20
+        while not root_done.exists():  # hold them while root asks for its status
+            assert time.monotonic() < deadline
+            time.sleep(0.1)
+        return "held"
+
+    children = [threading.Thread(target=as_user, args=(uid, hold_eight), kwargs={"gid": 0})
+                for uid in (NOBODY, NOBODY - 1)]
+    for c in children:
+        c.start()
+    time.sleep(1.5)
+    assert d.cli("status").returncode == 0  # a reserved slot
+    root_done.touch()
+    for c in children:
+        c.join()
+    d.stop()
+
+
 # ---- 4. a socket directory someone else made ----------------------------------------------
 @ROOT_ONLY
 def test_the_daemon_refuses_a_socket_directory_it_does_not_own(tmp_path: Path) -> None:
@@ -305,6 +359,18 @@ def test_the_daemon_refuses_a_socket_directory_it_does_not_own(tmp_path: Path) -
             assert "Traceback" not in proc.stderr
             assert not (planted / "control.sock").exists()
             assert not (tmp_path / "logs").exists()  # refused before any device or log
+        # A symlink someone else owns, to a directory of ours: they can re-point it at will.
+        ours = short / "ours"
+        ours.mkdir(mode=0o700)
+        link = short / "link"
+        link.symlink_to(ours)
+        os.lchown(link, NOBODY, NOBODY)
+        config = daemon_config(tmp_path, link / "control.sock")
+        proc = subprocess.run([sys.executable, "-m", "leveler.cli", "run", "--config",
+                               str(config)], capture_output=True, text=True, timeout=60, cwd=REPO)
+        assert proc.returncode == 2, proc.stderr
+        assert f"{link} is a symlink of uid 65534, who could point it elsewhere" in proc.stderr
+        assert not (ours / "control.sock").exists()
     finally:
         shutil.rmtree(short)
 
@@ -385,6 +451,22 @@ def test_a_reply_the_cli_cannot_read_is_one_line_not_a_traceback(
                 or "not a leveler daemon?" in proc.stderr), proc.stderr
     finally:
         shutil.rmtree(short)
+
+
+def test_a_socket_file_replaced_under_the_daemon_is_left_alone_and_the_log_finished(
+        start_daemon) -> None:  # type: ignore[no-untyped-def]
+    """Found by a second attack: with the socket's directory swapped under a running daemon,
+    removing the socket at exit raised PermissionError, which skipped finishing the log and
+    closing the stand (exit 1). It unlinks only the file it made; every close runs."""
+    d = start_daemon(rate_hz=10.0)
+    d.socket.unlink()
+    d.socket.write_text("someone else's")
+    err = d.stop()
+    assert d.proc.returncode == 0, err
+    assert "was replaced while we served; left alone" in err and "Traceback" not in err
+    assert d.socket.read_text() == "someone else's"
+    log = read_log(next(d.logs.glob("*.mcap")))
+    assert log.complete and log.events[-1]["kind"] == "stop"
 
 
 # ---- 5. a deleted log directory -----------------------------------------------------------

@@ -1,16 +1,16 @@
 """The control socket server: transport and access control, nothing about leveling.
 
-A Unix stream socket, mode 0660 and owned by the configured group, in a directory only the
-daemon's user (or root) can write, as ssh-agent and tmux insist; every connection's peer
-credentials (SO_PEERCRED) are checked as well, because a file mode is easy to loosen by
-accident. A refused peer is answered and closed by the accepting thread at once: it never
-holds a slot, and its `access` event is rate-limited. One thread per accepted connection
-(bounded by max_clients, and by max_clients_per_uid for any uid but root's and the daemon's
-own) reads line-delimited JSON requests and hands them to a `Handler`; a malformed request
-gets an error line back and the daemon carries on. A client holds its slot only while it
-keeps up: each request must be complete within idle_timeout_s of the last (a byte a second
-does not keep a slot), a reply must be read within idle_timeout_s, and a watcher must read
-its stream; a watcher that hangs up is noticed while the server waits, not at its next send.
+A Unix stream socket, mode 0660 and owned by the configured group, in a directory only the daemon's
+user (or root) can write, as ssh-agent and tmux insist; every connection's peer credentials
+(SO_PEERCRED) are checked as well, because a file mode is easy to loosen by accident. A refused peer
+is answered and closed by the accepting thread at once: it never holds a slot, and its `access`
+event is rate-limited. One thread per accepted connection (bounded by max_clients, of which
+RESERVED_SLOTS are kept for root and the daemon's user, and by max_clients_per_uid for any other
+uid) reads line-delimited JSON requests and hands them to a `Handler`; a malformed request gets an
+error line back and the daemon carries on. A client holds its slot only while it keeps up: each
+request must be complete within idle_timeout_s of the last (a byte a second does not keep a slot), a
+reply must be read within idle_timeout_s, and a watcher must read its stream; a watcher that hangs
+up is noticed while the server waits, not at its next send.
 """
 
 from __future__ import annotations
@@ -58,6 +58,7 @@ class ControlConfig:
 
 _log = logging.getLogger(__name__)
 _UCRED = struct.Struct("3i")
+RESERVED_SLOTS = 2  # of max_clients, that only root and the daemon's user may take
 REFUSAL_REPORT_S = 10.0  # at most one `access` event per uid in this time; the rest counted
 
 
@@ -189,6 +190,8 @@ class ControlServer:
         self._uid = os.geteuid()
         self._max = max_clients
         self._max_per_uid = max_clients_per_uid
+        # kept for root and the daemon's user: group members together cannot lock them out
+        self._reserved = min(RESERVED_SLOTS, max_clients - 1)
         self._idle = idle_timeout_s
         self._lock = threading.Lock()
         self._served: Counter[int] = Counter()  # uid -> connections being served
@@ -196,6 +199,7 @@ class ControlServer:
         self._sock: socket.socket | None = None
         self._thread: threading.Thread | None = None
         self._closing = threading.Event()
+        self._bound = (-1, -1)  # (st_dev, st_ino) of the socket file we made
 
     def allowed(self, peer: Peer, conn: socket.socket) -> bool:
         if peer.uid in (0, self._uid) or peer.gid == self._gid:
@@ -220,6 +224,8 @@ class ControlServer:
             sock.bind(str(self.path))
         finally:
             os.umask(old)
+        st = os.lstat(self.path)
+        self._bound = (st.st_dev, st.st_ino)
         os.chmod(self.path, 0o660)
         if self._gid != os.getegid():
             os.chown(self.path, -1, self._gid)
@@ -236,10 +242,25 @@ class ControlServer:
                 self._sock.shutdown(socket.SHUT_RDWR)
             self._sock.close()
             self._sock = None
-            with contextlib.suppress(FileNotFoundError):
-                self.path.unlink()
+            self._remove_socket_file()
         if self._thread is not None:
             self._thread.join(timeout=2)
+
+    def _remove_socket_file(self) -> None:
+        """Unlink the socket we bound, not whatever stands at its path now (a directory
+        swapped under us holds someone else's file); a failure is logged, never raised:
+        the daemon still has its log to finish."""
+        try:
+            st = os.lstat(self.path)
+            if (st.st_dev, st.st_ino) == self._bound:
+                self.path.unlink()
+            else:
+                _log.warning("control socket %s was replaced while we served; left alone",
+                             self.path)
+        except FileNotFoundError:
+            pass
+        except OSError as exc:
+            _log.warning("could not remove the control socket %s: %s", self.path, exc)
 
     def _accept(self) -> None:
         assert self._sock is not None
@@ -268,13 +289,18 @@ class ControlServer:
                    f"of group {self._gid}")
             self._report_refusal(peer, why)
             return why
+        privileged = peer.uid in (0, self._uid)
         with self._lock:
-            if sum(self._served.values()) >= self._max:
+            served = sum(self._served.values())
+            if served >= self._max:
                 return "too many clients; try later"
-            if (peer.uid not in (0, self._uid)
-                    and self._served[peer.uid] >= self._max_per_uid):
-                return (f"too many connections from uid {peer.uid} (at most "
-                        f"{self._max_per_uid} at once); try later")
+            if not privileged:
+                others = served - sum(self._served[u] for u in {0, self._uid})
+                if others >= self._max - self._reserved:
+                    return "too many clients; try later"
+                if self._served[peer.uid] >= self._max_per_uid:
+                    return (f"too many connections from uid {peer.uid} (at most "
+                            f"{self._max_per_uid} at once); try later")
             self._served[peer.uid] += 1
         return None
 

@@ -73,6 +73,10 @@ def untrusted_socket_dir(directory: Path, trusted_uids: set[int]) -> str | None:
     clients send it; so, as ssh-agent and tmux insist, the directory must be owned by a
     trusted uid and writable by no one else (an attacker can make `/tmp/leveler-<uid>`
     before the daemon does)."""
+    link = os.lstat(directory)
+    if stat.S_ISLNK(link.st_mode) and link.st_uid not in trusted_uids:
+        return (f"{directory} is a symlink of uid {link.st_uid}, who could point it elsewhere "
+                "at any time")
     st = os.stat(directory)
     if not stat.S_ISDIR(st.st_mode):
         return f"{directory} is not a directory"

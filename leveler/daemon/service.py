@@ -195,12 +195,14 @@ class Daemon:
         if verb == "tune":
             values, persist = tune_args(req)
             new = self._validated(values)
-            if not bool_arg(req, "tune", "force"):
+            forced = bool_arg(req, "tune", "force")
+            if not forced:
                 try:
                     self._refuse_unstable(self.cfg.plant, self.cfg.controller, new)
                 except ProtocolError as exc:
                     raise ProtocolError(f"tune: {exc}") from None
-            self.call(lambda t: self._apply_controller(new, t, f"tune by {who}"))
+            reason = f"tune by {who}" + (" (--force: no stability check)" if forced else "")
+            self.call(lambda t: self._apply_controller(new, t, reason))
             if persist:
                 self._persist(values)
             return {"ok": True, "controller": dataclasses.asdict(new), "persisted": persist}
@@ -226,6 +228,12 @@ class Daemon:
                         f"{self.config_path} no longer sets {len(dropped)} key(s) the running "
                         f"config set: {named} (a file cut short?); they would take their "
                         "defaults. To mean that: leveler reload --accept-dropped")
+                if text and not text.endswith("\n") and not accept_dropped:
+                    last = text.rsplit("\n", 1)[-1].strip()
+                    raise ProtocolError(
+                        f"{self.config_path} ends mid-line (no newline after {last!r}): a "
+                        "file cut short? Its last value may be cut too. To mean it: leveler "
+                        "reload --accept-dropped")
                 if not force:
                     self._refuse_unstable(new.plant, self.cfg.controller, new.controller)
             except (ConfigError, ProtocolError) as exc:
@@ -234,7 +242,8 @@ class Daemon:
                 raise ProtocolError(f"reload rejected, the running config is kept: {exc}"
                                     ) from None
             try:
-                return self.call(lambda t: self._apply_reload(new, text, t, who, dropped))
+                return self.call(lambda t: self._apply_reload(new, text, t, who, dropped,
+                                                              force))
             except ProtocolError as exc:  # the loop did not answer: say so in the journal
                 _log.error("reload (%s): %s", who, exc)
                 raise
@@ -435,7 +444,7 @@ class Daemon:
                   **values)
 
     def _apply_reload(self, new: Config, text: str, t: float, who: str,
-                      dropped: list[str]) -> dict[str, Any]:
+                      dropped: list[str], forced: bool) -> dict[str, Any]:
         """Apply a checked config: [controller] at once (bumpless), the status interval too;
         the rest is reported as needing a restart. Logs the diff of effective values."""
         diff = {k: list(v) for k, v in config_diff(self.cfg, new).items()}
@@ -443,12 +452,13 @@ class Daemon:
         restart = ["loop"] if live_loop != self.cfg.loop else []
         restart += [name for name in ("log", "control", "sensor", "actuator", "plant", "sim")
                     if getattr(new, name) != getattr(self.cfg, name)]
-        self._apply_controller(new.controller, t, f"reload ({who})")
+        self._apply_controller(new.controller, t, f"reload ({who})"
+                               + (" (--force: no stability check)" if forced else ""))
         self.cfg = dataclasses.replace(self.cfg, loop=dataclasses.replace(
             self.cfg.loop, status_interval_s=new.loop.status_interval_s))
         self._keys = explicit_keys(text)
         self.loop.emit("reload", "applied", t, by=who, changed=diff, needs_restart=restart,
-                       dropped=dropped)
+                       dropped=dropped, forced=forced)
         _log.info("reload (%s) applied: %s", who, "; ".join(
             f"{k} {old!r} -> {value!r}" for k, (old, value) in diff.items()) or "no change")
         if restart:
@@ -573,12 +583,12 @@ class Daemon:
                           sensor_errors=loop.errors["sensor"],
                           actuator_errors=loop.errors["actuator"], safe=safe)
             finally:  # even if the log refused those events: finish it, remove the socket
-                self.server.close()
-                self.log.close()
-                self.stand.close()
-                self.notifier.close()
-                for sig, handler in previous.items():
-                    signal.signal(sig, handler)
+                with contextlib.ExitStack() as closing:  # each runs even if one before fails
+                    for sig, handler in previous.items():
+                        closing.callback(signal.signal, sig, handler)
+                    for close in (self.notifier.close, self.stand.close, self.log.close,
+                                  self.server.close):
+                        closing.callback(close)
         print(f"stopped ({self.stop_reason or 'finished'}): {self.log.samples_written} samples "
               f"in {', '.join(str(p) for p in self.log.files)}", file=sys.stderr, flush=True)
         return 0
