@@ -9,7 +9,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from leveler.daemon.control_server import ControlConfig
 from leveler.drivers.modbus_config import ModbusActuatorConfig, ModbusSensorConfig
 from leveler.drivers.nidaq_config import NidaqActuatorConfig, NidaqSensorConfig
 from leveler.drivers.serial_config import SerialPiezoConfig, SerialSensorConfig
@@ -18,7 +17,20 @@ from leveler.log.rotate import LogConfig
 from leveler.loop.cycle import LoopConfig
 from leveler.loop.pid import ControllerConfig
 from leveler.sim.params import PlantParams
-from leveler.typed_config import ConfigError, build, load_toml, non_negative
+from leveler.typed_config import ConfigError, build, load_toml, non_negative, positive
+
+
+@dataclass(frozen=True, slots=True)
+class ControlConfig:
+    """[control]: the daemon's socket, where it lives and who may use it. Kept here, not in
+    daemon/, because the daemon reads this tree: its wing sits above settings."""
+
+    socket_path: str = ""
+    group: str = ""
+    max_clients: int = field(default=16, metadata={"ge": 1, "le": 1024})
+    # any uid but root's and the daemon's own: one user cannot lock the others out
+    max_clients_per_uid: int = field(default=8, metadata={"ge": 1, "le": 1024})
+    idle_timeout_s: float = positive(60.0)
 
 
 @dataclass(frozen=True, slots=True)

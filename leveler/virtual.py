@@ -1,21 +1,21 @@
-"""`leveler sim`: the daemon's loop in virtual time, closed loop vs open loop.
+"""The loop in virtual time against the simulated stand: the one harness that `leveler sim`,
+`leveler modulate --sim`, the synthetic logs of the analysis tests and the benchmarks run.
 
-Both runs see the same disturbance realization (same seed); the open-loop run holds the
-piezo at its safe voltage. Spectra are read at the paper's frequencies from the in-loop
-sensor and from the true platform tilt (out of loop, known only in simulation).
+It is the daemon's own loop, drivers and PID, with a `VirtualClock` instead of the real-time
+one, so every simulated figure is a figure of the code that runs the stand. Virtual time
+outruns any log writer: a run given a writer waits for it every few thousand cycles rather
+than letting its backlog grow (or drop records).
 """
 
 from __future__ import annotations
 
-import sys
-import time
 from array import array
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from leveler.analysis.spectral import asd_at
+from leveler.drivers.base import Actuator
 from leveler.log.writer import LogWriter
 from leveler.loop.clock import VirtualClock
 from leveler.loop.cycle import Loop, Sink
@@ -24,20 +24,23 @@ from leveler.records import Event, Sample, Truth
 from leveler.settings import Config
 from leveler.stand import open_stand
 
-REPORT_FREQS_HZ = (1e-4, 1e-3, 1e-2)
-_MAX_SIM_BACKLOG = 20_000  # records queued for the log writer before the sim waits
+_PACE_EVERY = 20_000  # cycles between waits for a log writer, and its allowed backlog
 
 
 class Recorder:
-    """In-memory sink keeping the two series the spectra need."""
+    """In-memory sink: sample times, reading, applied voltage, true tilt, events."""
 
     def __init__(self) -> None:
+        self.t_s = array("d")
         self.sensor_m = array("d")
+        self.applied_v = array("d")
         self.tilt_rad = array("d")
         self.events: list[Event] = []
 
     def sample(self, s: Sample, log_time_ns: int) -> None:
+        self.t_s.append(s.t_s)
         self.sensor_m.append(s.sensor_m)
+        self.applied_v.append(s.applied_v)
 
     def truth(self, t: Truth, log_time_ns: int) -> None:
         self.tilt_rad.append(t.tilt_rad)
@@ -48,88 +51,89 @@ class Recorder:
 
 @dataclass
 class Run:
+    """What a run recorded, as numpy views of the recorder's arrays."""
+
+    t_s: np.ndarray
     sensor_m: np.ndarray
+    applied_v: np.ndarray
     tilt_rad: np.ndarray
     events: list[Event] = field(default_factory=list)
+
+
+class VirtualStand:
+    """The stand a config describes (backend "sim"), its loop and a virtual clock.
+
+    `wrap_actuator` lets a caller put something between the loop and the piezo (the
+    synthetic logs' dither); `sinks` receive every record besides the recorder. Use as a
+    context manager: leaving it puts the actuator in its safe state and closes the stand.
+    """
+
+    def __init__(self, cfg: Config, seed: int, *, sinks: Sequence[Sink] = (),
+                 wrap_actuator: Callable[[Actuator], Actuator] | None = None,
+                 start_wall_ns: int | None = None) -> None:
+        self.dt_s = 1.0 / cfg.loop.rate_hz
+        self.stand = open_stand(cfg, seed)
+        self.stand.connect()
+        actuator = self.stand.actuator if wrap_actuator is None else wrap_actuator(
+            self.stand.actuator)
+        self.recorder = Recorder()
+        self.loop = Loop(self.stand.sensor, actuator, PID(cfg.controller.pid_config()),
+                         self.dt_s, [self.recorder, *sinks], self.stand.truth, policy=cfg.loop)
+        self.clock = VirtualClock(self.dt_s, start_wall_ns)
+        self.t_s = self.clock.tick()
+
+    def __enter__(self) -> VirtualStand:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stand.actuator.make_safe()
+        self.stand.close()
+
+    def cycle(self) -> Sample:
+        """One cycle at the present time; `step` advances the clock first."""
+        return self.loop.cycle(self.t_s, self.clock.wall_ns(self.t_s))
+
+    def tick(self) -> float:
+        """Advance the clock one period (a procedure may act between tick and cycle)."""
+        self.t_s = self.clock.tick()
+        return self.t_s
+
+    def step(self) -> Sample:
+        self.tick()
+        return self.cycle()
+
+    def run(self, cycles: int, *, writer: LogWriter | None = None,
+            progress: Callable[[float], None] | None = None) -> None:
+        """`cycles` steps, pacing to `writer` and reporting the fraction done to `progress`."""
+        every = max(min(cycles // 200, _PACE_EVERY), 1)
+        for k in range(1, cycles + 1):
+            self.step()
+            if k % every == 0:
+                if writer is not None:
+                    writer.wait_drained(max_backlog=_PACE_EVERY)
+                if progress is not None:
+                    progress(k / cycles)
+
+    def recorded(self, first: int = 0) -> Run:
+        """The recorded series from sample `first` on."""
+        r = self.recorder
+        return Run(*(np.frombuffer(a)[first:] for a in (r.t_s, r.sensor_m, r.applied_v,
+                                                         r.tilt_rad)), r.events)
 
 
 def run_virtual(cfg: Config, duration_s: float, seed: int, *, engaged: bool,
                 writer: LogWriter | None = None,
                 progress: Callable[[float], None] | None = None,
                 start_wall_ns: int | None = None) -> Run:
-    """Run the loop for duration_s of virtual time; returns the recorded series.
-
-    Virtual time outruns any log writer, so the loop waits for the writer to catch up
-    every few thousand cycles instead of letting its backlog grow (or drop records).
-    """
-    dt = 1.0 / cfg.loop.rate_hz
-    stand = open_stand(cfg, seed)
-    stand.connect()
-    rec = Recorder()
-    sinks: list[Sink] = [rec] if writer is None else [rec, writer]
-    loop = Loop(stand.sensor, stand.actuator, PID(cfg.controller.pid_config()), dt, sinks,
-                stand.truth, policy=cfg.loop)
-    clock = VirtualClock(dt, start_wall_ns)
-    n = round(duration_s / dt)
-    report_every = max(n // 200, 1)
-    try:
-        t = clock.tick()
-        loop.emit("start", "sim", t, engaged=engaged, seed=seed)
-        loop.cycle(t, clock.wall_ns(t))
+    """`leveler sim`'s run: duration_s of virtual time, closed loop or open (the piezo at
+    its safe voltage), with every record to `writer` if given."""
+    sinks = [] if writer is None else [writer]
+    with VirtualStand(cfg, seed, sinks=sinks, start_wall_ns=start_wall_ns) as vs:
+        vs.loop.emit("start", "sim", vs.t_s, engaged=engaged, seed=seed)
+        vs.cycle()
         if engaged:
-            loop.engage(t, "sim start")
-        for k in range(1, n):
-            t = clock.tick()
-            loop.cycle(t, clock.wall_ns(t))
-            if k % report_every == 0:
-                if writer is not None:
-                    writer.wait_drained(max_backlog=_MAX_SIM_BACKLOG)
-                if progress is not None:
-                    progress(k / n)
-        loop.emit("stop", "sim end", t)
-    finally:
-        stand.actuator.make_safe()
-        stand.close()
-    return Run(np.frombuffer(rec.sensor_m), np.frombuffer(rec.tilt_rad), rec.events)
+            vs.loop.engage(vs.t_s, "sim start")
+        vs.run(round(duration_s / vs.dt_s) - 1, writer=writer, progress=progress)
+        vs.loop.emit("stop", "sim end", vs.t_s)
+        return vs.recorded()
 
-
-def _asd_or_none(x: np.ndarray, fs_hz: float) -> list[float | None]:
-    """ASD at each report frequency; None where the run is too short to reach it."""
-    out: list[float | None] = []
-    for f in REPORT_FREQS_HZ:
-        try:
-            out.append(float(asd_at(x, fs_hz, [f])[0]))
-        except ValueError:
-            out.append(None)
-    return out
-
-
-def spectra(run: Run, fs_hz: float) -> dict[str, list[float | None]]:
-    """In-loop sensor and true-tilt ASD at REPORT_FREQS_HZ."""
-    return {"sensor_m_rthz": _asd_or_none(run.sensor_m, fs_hz),
-            "tilt_rad_rthz": _asd_or_none(run.tilt_rad, fs_hz)}
-
-
-class ProgressBar:
-    """A plain progress bar on stderr, redrawn at most a few times a second."""
-
-    def __init__(self, label: str, total_s: float) -> None:
-        self.label, self.total_s = label, total_s
-        self._last = 0.0
-        self._tty = sys.stderr.isatty()
-
-    def __call__(self, frac: float) -> None:
-        now = time.monotonic()
-        if now - self._last < (0.25 if self._tty else 5.0) and frac < 1.0:
-            return
-        self._last = now
-        bar = "#" * int(frac * 30)
-        end = "\r" if self._tty else "\n"
-        sys.stderr.write(f"{self.label} [{bar:<30}] {frac * 100:5.1f}% "
-                         f"{frac * self.total_s / 3600:6.2f}/{self.total_s / 3600:.2f} h{end}")
-        sys.stderr.flush()
-
-    def done(self) -> None:
-        self(1.0)
-        if self._tty:
-            sys.stderr.write("\n")

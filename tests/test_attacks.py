@@ -565,6 +565,11 @@ def test_a_full_connection_queue_is_busy_not_a_traceback(
         assert proc.returncode == 2
         assert proc.stderr == (f"leveler status: error: the daemon on {d.socket} is busy (its "
                                "queue of pending connections stayed full); try later\n")
+        # reload waits up to a minute for its reply, but not for a queue that stays full
+        began = time.monotonic()
+        proc = d.cli("reload", timeout=30)
+        assert proc.returncode == 2 and "is busy" in proc.stderr
+        assert time.monotonic() - began < 20
     finally:
         d.proc.send_signal(signal.SIGCONT)
         for s in pending:

@@ -452,7 +452,7 @@ def test_a_full_daemon_tells_the_cli_to_try_later(tmp_path: Path) -> None:
 def test_status_text_says_what_a_null_means() -> None:
     """JSON carries NaN and infinity as null: a failed write, an unlimited slew, no log file
     (the disk is full) must read as such, not as `None` or a TypeError."""
-    from leveler.daemon.client import format_status
+    from leveler.cli.status import format_status
 
     st = {"version": "0", "pid": 1, "uptime_s": 60.0, "config_path": "c.toml",
           "state": "engaged", "fault_reason": "", "driver_errors": {"sensor": 0, "actuator": 1},

@@ -25,7 +25,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from leveler.daemon.client import Client, format_status
+from leveler.cli.status import format_status
+from leveler.daemon.client import Client
 from leveler.log.reader import read_log
 
 LOSS = re.compile(r"log write failed: \[Errno 28\] No space left on device; (\d+) samples lost "

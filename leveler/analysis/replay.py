@@ -1,8 +1,8 @@
-"""`leveler replay`: how well the plant model predicts what the sensor really saw.
+"""Replay: how well the plant model predicts what the sensor really saw (`leveler replay`).
 
 The metrics are those of the residual (measured minus predicted, after the unknown offset
 and the thermal lag's start are removed): RMS, RMS and mean ASD in the paper's bands, and
-the fraction of the measured variance the model explains. `--gains` asks what other gains
+the fraction of the measured variance the model explains. `what_if` asks what other gains
 would have done: the controller is rerun against the model, driven by the same
 disturbance the log implies (linear superposition: reading = logged reading + the model's
 response to the change in actuator voltage).
@@ -10,24 +10,18 @@ response to the change in actuator voltage).
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
-import math
-import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from leveler.analysis.diagnose import BANDS_HZ, gap, warmup_samples
-from leveler.analysis.predict import Measured, Predictor, load_measured
-from leveler.analysis.spectral import asd_at
-from leveler.errors import LogError
-from leveler.log.reader import partial_note
+from leveler.analysis.predict import Measured, Predictor
+from leveler.analysis.spectral import REPORT_FREQS_HZ, asd_or_none
 from leveler.loop.pid import PID
 from leveler.sim.pendulum import PendulumModel
-from leveler.virtual import REPORT_FREQS_HZ
 
 
 def what_if(meas: Measured, pred: Predictor, gains: tuple[float, float, float]) -> np.ndarray:
@@ -53,12 +47,6 @@ def what_if(meas: Measured, pred: Predictor, gains: tuple[float, float, float]) 
         pend.step(kv * (u - u0))
     return out
 
-
-def _asd_or_none(x: np.ndarray, fs_hz: float, f_hz: float) -> float | None:
-    try:
-        return float(asd_at(x, fs_hz, [f_hz])[0])
-    except ValueError:
-        return None
 
 
 def replay(meas: Measured, gains: tuple[float, float, float] | None = None
@@ -88,8 +76,8 @@ def replay(meas: Measured, gains: tuple[float, float, float] | None = None
             "logged_gains": {"kp_v_per_m": meas.gains[0], "ki_v_per_m_s": meas.gains[1],
                              "kd_v_s_per_m": meas.gains[2]},
             "freq_hz": list(REPORT_FREQS_HZ),
-            "measured_asd_m_rthz": [_asd_or_none(y_old, fs, f) for f in REPORT_FREQS_HZ],
-            "predicted_asd_m_rthz": [_asd_or_none(y_new, fs, f) for f in REPORT_FREQS_HZ],
+            "measured_asd_m_rthz": asd_or_none(y_old, fs),
+            "predicted_asd_m_rthz": asd_or_none(y_new, fs),
             "predicted_rms_m": float(np.std(y_new)),
             "measured_rms_m": float(np.std(y_old)),
         }
@@ -154,61 +142,3 @@ def plot_replay(path: str | Path, meas: Measured, pred: Predictor, span: slice,
     bottom.grid(True, which="major", alpha=0.4)
     bottom.legend()
     fig.savefig(path, dpi=110)
-
-
-def parse_gains(text: str) -> tuple[float, float, float]:
-    try:
-        kp, ki, kd = (float(v) for v in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected KP,KI,KD (three numbers, V/m, V/(m s), V s/m), got {text!r}") from None
-    if not all(math.isfinite(v) for v in (kp, ki, kd)):
-        raise argparse.ArgumentTypeError("gains must be finite")
-    return kp, ki, kd
-
-
-def _fmt_m(v: float | None) -> str:
-    return "   n/a" if v is None else f"{v * 1e9:8.3g}"
-
-
-def report(r: dict[str, Any]) -> str:
-    lines = [f"replay of {r['log']} against {r['model']}",
-             f"{r['samples']} samples at {r['rate_hz']:g} Hz; analysed "
-             f"{r['analysed_s'][0]:.0f}-{r['analysed_s'][1]:.0f} s; temperature "
-             f"{'used' if r['temperature_logged'] else 'not logged'}",
-             f"residual RMS {r['rms_m'] * 1e9:.3g} nm; measured variance explained "
-             f"{r['variance_explained'] * 100:.1f}%" if r["variance_explained"] is not None
-             else f"residual RMS {r['rms_m'] * 1e9:.3g} nm", "",
-             f"{'band':>12} {'residual RMS [nm]':>18} {'mean ASD [nm/rtHz]':>19}"]
-    for band in BANDS_HZ:
-        lines.append(f"{band:>12} {_fmt_m(r['band_rms_m'][band]):>18} "
-                     f"{_fmt_m(r['band_asd_m_rthz'][band]):>19}")
-    w = r.get("what_if")
-    if w:
-        g = w["gains"]
-        lines += ["", f"what if kp={g['kp_v_per_m']:g}, ki={g['ki_v_per_m_s']:g}, "
-                  f"kd={g['kd_v_s_per_m']:g} (logged: {w['logged_gains']['kp_v_per_m']:g}, "
-                  f"{w['logged_gains']['ki_v_per_m_s']:g}, {w['logged_gains']['kd_v_s_per_m']:g}):",
-                  f"{'frequency':>12} {'measured [nm/rtHz]':>19} {'predicted [nm/rtHz]':>20}"]
-        for f, a, b in zip(w["freq_hz"], w["measured_asd_m_rthz"], w["predicted_asd_m_rthz"],
-                           strict=True):
-            lines.append(f"{f * 1e3:9.1f} mHz {_fmt_m(a):>19} {_fmt_m(b):>20}")
-    return "\n".join(lines)
-
-
-def run_replay_command(args: argparse.Namespace) -> int:
-    meas = load_measured(args.log, args.model)
-    if meas.incomplete:
-        print(f"leveler replay: {partial_note(args.log, meas.incomplete, len(meas.y_m))}",
-              file=sys.stderr)
-    result, pred, span = replay(meas, args.gains)
-    if args.out:
-        if Path(args.out).resolve() == Path(args.log).resolve():
-            raise LogError(f"{args.out}: --out would overwrite the log being replayed")
-        write_replay_log(args.out, meas, pred)
-        result["out"] = args.out
-    if args.plot:
-        plot_replay(args.plot, meas, pred, span, f"replay: {Path(args.log).name}")
-        result["plot"] = args.plot
-    print(json.dumps(result) if args.json else report(result))
-    return 0

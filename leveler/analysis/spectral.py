@@ -277,3 +277,20 @@ def asd_at(
     lo, hi = _default_axis(p, None, None)
     spacing = (hi / lo) ** (1 / (_DEFAULT_N_FREQS - 1))
     return _spectrum(xc, p, freqs, spacing).asd
+
+
+#: the paper's frequencies, where `sim`, `replay` and the reports quote an ASD
+REPORT_FREQS_HZ = (1e-4, 1e-3, 1e-2)
+
+
+def asd_or_none(x: ArrayLike, fs_hz: float,
+                freqs_hz: Sequence[float] = REPORT_FREQS_HZ) -> list[float | None]:
+    """ASD at each frequency; None where the record is too short to reach it (a report
+    says "n/a" there rather than refusing the whole run)."""
+    out: list[float | None] = []
+    for f in freqs_hz:
+        try:
+            out.append(float(asd_at(x, fs_hz, [f])[0]))
+        except ValueError:
+            out.append(None)
+    return out

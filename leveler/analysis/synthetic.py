@@ -16,12 +16,9 @@ from pathlib import Path
 from leveler import __version__
 from leveler.drivers.base import Actuator
 from leveler.log.writer import LogWriter
-from leveler.loop.clock import VirtualClock
-from leveler.loop.cycle import Loop
-from leveler.loop.pid import PID
 from leveler.settings import Config
 from leveler.sim.effects import Effect, EffectsParams
-from leveler.stand import open_stand
+from leveler.virtual import VirtualStand
 
 
 class DitheredActuator:
@@ -61,27 +58,18 @@ def make_measured(out: str | Path, nominal: Config, nominal_text: str, effect: E
     effects = EffectsParams() if effect is None else EffectsParams().with_effect(effect)
     truth = dataclasses.replace(nominal, plant=dataclasses.replace(nominal.plant,
                                                                    effects=effects))
-    dt = 1.0 / truth.loop.rate_hz
-    stand = open_stand(truth, seed)
-    stand.connect()
-    actuator: Actuator = stand.actuator
-    if dither_v > 0:
-        actuator = DitheredActuator(actuator, dither_v, dither_period_s, dither_shape)
+
+    def dither(actuator: Actuator) -> Actuator:
+        if dither_v <= 0:
+            return actuator
+        return DitheredActuator(actuator, dither_v, dither_period_s, dither_shape)
+
     meta = {"config": nominal_text, "version": __version__, "seed": str(seed),
             "mode": "hidden-effect test data", "duration_s": repr(duration_s)}
-    with LogWriter(out, truth=True, metadata=meta) as writer:
-        loop = Loop(stand.sensor, actuator, PID(truth.controller.pid_config()), dt, [writer],
-                    stand.truth)
-        clock = VirtualClock(dt, 0)
-        n = round(duration_s / dt)
-        t = clock.tick()
-        loop.emit("start", "hidden-effect test data", t, seed=seed)
-        loop.cycle(t, clock.wall_ns(t))
-        loop.engage(t, "start")
-        for k in range(1, n):
-            t = clock.tick()
-            loop.cycle(t, clock.wall_ns(t))
-            if k % 20000 == 0:
-                writer.wait_drained(max_backlog=20000)
-        loop.emit("stop", "end", t)
-    stand.close()
+    with (LogWriter(out, truth=True, metadata=meta) as writer,
+          VirtualStand(truth, seed, sinks=[writer], wrap_actuator=dither, start_wall_ns=0) as vs):
+        vs.loop.emit("start", "hidden-effect test data", vs.t_s, seed=seed)
+        vs.cycle()
+        vs.loop.engage(vs.t_s, "start")
+        vs.run(round(duration_s / vs.dt_s) - 1, writer=writer)
+        vs.loop.emit("stop", "end", vs.t_s)

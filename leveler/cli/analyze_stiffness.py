@@ -8,17 +8,52 @@ import math
 import sys
 from dataclasses import asdict, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
+if TYPE_CHECKING:
+    import numpy as np
 
-from leveler.procedures import stiffness as st
-from leveler.sim.torsion import (
-    DEFAULT_COUNTERWEIGHT_KG,
-    DEFAULT_COUNTERWEIGHT_OFFSET_M,
-    TorsionParams,
-)
+    from leveler.procedures.stiffness import TiltPoint
+    from leveler.sim.torsion import TorsionParams
 
-_REGIMES = (st.SOFTENING, st.LEVEL, st.STIFFENING, st.NEGATIVE)
+
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser(
+        "stiffness", help="thrust stiffness and compliance against base tilt; regimes; tilt "
+        "budget (paper Figs. 3-6)",
+        description="For each pivot stiffness K0 and thrust F, and each pitch tilt of a "
+        "symmetric sweep, a square-wave thrust (0/F, 5 x 400 s at 5 Hz, 1 nm/rtHz sensor noise) "
+        "drives the simulated pendulum, and a second-order thrust -> displacement transfer "
+        "function is identified by least squares. Its 0 Hz value, with the sensor zeroed at "
+        "the level rest position (the paper's definition), gives the compliance S = theta / "
+        "(F L) and the stiffness K = 1 / S. The gravity torque does not change the pendulum's "
+        "dynamics, it shifts its rest point; attributing that shift to the thrust makes "
+        "S = (1 + r) / K0 with r = M g sin(tilt) l_cm / (F L): compliance linear in tilt "
+        "(Fig. 6), stiffness close to a two-term exponential (Fig. 5). 'K incr.' is the "
+        "stiffness fitted with a free offset: K0 at every tilt. Regimes: r > 0 softening, "
+        "-1 < r < 0 stiffening, r < -1 negative stiffness (unstable as a balance). Tilt budget: "
+        "the largest |tilt| with gravity torque <= 1/4 of F L, from the measured compliance "
+        "slope. Fits and the regime table use the first K0; takes some seconds per K0 and F.",
+        epilog="Example: leveler analyze stiffness --plot-dir out/ (transfer_1uN.png and "
+        "transfer_0.1uN.png like Figs. 3, 4; stiffness.png, compliance.png, regimes.png). "
+        "Units are SI; the tables show urad and uN.")
+    p.add_argument("--stiffness-nm-per-rad", type=float, nargs="+", default=[0.2, 0.02],
+                   metavar="K0", help="pivot stiffnesses K0 [N m/rad] (default: 0.2 0.02, "
+                   "the paper's); the first gets the fits")
+    p.add_argument("--thrust-n", type=float, nargs="+", default=[1e-6, 1e-7], metavar="F",
+                   help="square-wave thrust amplitudes [N] (default: 1e-6 1e-7, the paper's); "
+                   "the first gets the Fig. 5/6 fits")
+    p.add_argument("--max-tilt-rad", type=float, default=20e-6,
+                   help="sweep pitch from -this to +this [rad] (default: %(default)g)")
+    p.add_argument("--tilt-step-rad", type=float, default=2.5e-6,
+                   help="sweep step [rad] (default: %(default)g)")
+    p.add_argument("--seed", type=int, default=0, help="sensor-noise seed (default: 0)")
+    p.add_argument("--json", action="store_true",
+                   help="print one JSON object (model, identification, sweeps with points, "
+                   "fits, regimes_seen, tilt_budget_rad)")
+    p.add_argument("--plot-dir", default=None, metavar="DIR",
+                   help="write the figures (PNG) into DIR")
+    p.set_defaults(func=run)
 
 
 def _num(x: float) -> float | None:
@@ -29,6 +64,10 @@ def _num(x: float) -> float | None:
 def analyze(base: TorsionParams, stiffnesses: list[float], thrusts: list[float],
             tilts: np.ndarray, seed: int) -> dict:
     """Every (K0, F) sweep; fits on the first K0; regimes and budgets for every F."""
+    from leveler.procedures import stiffness as st
+    from leveler.sim.torsion import DEFAULT_COUNTERWEIGHT_KG, DEFAULT_COUNTERWEIGHT_OFFSET_M
+
+    regimes = (st.SOFTENING, st.LEVEL, st.STIFFENING, st.NEGATIVE)
     sweeps = []
     for i, k0 in enumerate(stiffnesses):
         p = replace(base, stiffness_nm_per_rad=k0)
@@ -49,7 +88,7 @@ def analyze(base: TorsionParams, stiffnesses: list[float], thrusts: list[float],
             sweep["negative_stiffness_below_rad"] = st.negative_stiffness_tilt_rad(
                 sens, thrust, p.arm_m)
             sweep["regimes_seen"] = {
-                name: [pt.tilt_rad for pt in points if pt.regime == name] for name in _REGIMES}
+                name: [pt.tilt_rad for pt in points if pt.regime == name] for name in regimes}
             sweeps.append(sweep)
     return {
         "model": {**asdict(base), "natural_frequency_hz": base.natural_frequency_hz,
@@ -66,7 +105,7 @@ def analyze(base: TorsionParams, stiffnesses: list[float], thrusts: list[float],
     }
 
 
-def _point(pt: st.TiltPoint) -> dict:
+def _point(pt: TiltPoint) -> dict:
     return {"tilt_rad": pt.tilt_rad, "compliance_rad_per_nm": pt.compliance_rad_per_nm,
             "stiffness_nm_per_rad": _num(pt.stiffness_nm_per_rad),
             "incremental_stiffness_nm_per_rad": pt.incremental_stiffness_nm_per_rad,
@@ -122,6 +161,8 @@ def report(r: dict) -> str:
 
 def _shown_tilts(tilts: list[float]) -> list[float]:
     """-max, -max/2, 0, +max/2, +max (or the nearest swept tilts)."""
+    import numpy as np
+
     arr = np.array(tilts)
     top = float(arr.max())
     return sorted({float(arr[np.argmin(np.abs(arr - t))]) for t in
@@ -129,6 +170,8 @@ def _shown_tilts(tilts: list[float]) -> list[float]:
 
 
 def _sweep_table(sw: dict, note: str) -> list[str]:
+    from leveler.procedures.stiffness import LEVEL
+
     k0, thrust = sw["stiffness_nm_per_rad"], sw["thrust_n"]
     lines = [f"Tilt sweep: K0 = {k0:g} N m/rad, F = {thrust * 1e6:g} uN{note}",
              f"  {'tilt [urad]':>11} {'S [rad/(N m)]':>14} {'K [N m/rad]':>12} "
@@ -161,9 +204,8 @@ def _sweep_table(sw: dict, note: str) -> list[str]:
                 else ("below", "above"))
     lines.append(f"  regimes: softening (r > 0) {up} level; stiffening (-1 < r < 0) {down} "
                  f"level; negative stiffness (r < -1, unstable) {bound}")
-    for name in _REGIMES:
-        seen = sw["regimes_seen"][name]
-        if seen and name != st.LEVEL:
+    for name, seen in sw["regimes_seen"].items():
+        if seen and name != LEVEL:
             span = (f"{seen[0] * 1e6:+.1f}" if len(seen) == 1 else
                     f"{min(seen) * 1e6:+.1f} .. {max(seen) * 1e6:+.1f}")
             lines.append(f"    {name}: seen at {span} urad ({len(seen)} of the swept tilts)")
@@ -172,8 +214,11 @@ def _sweep_table(sw: dict, note: str) -> list[str]:
 
 def plot(r: dict, out_dir: Path) -> list[Path]:
     """transfer_<F>uN.png (Figs. 3, 4), stiffness.png (5), compliance.png (6), regimes.png."""
+    import numpy as np
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+
+    from leveler.procedures import stiffness as st
 
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
@@ -276,7 +321,10 @@ def plot(r: dict, out_dir: Path) -> list[Path]:
     return written
 
 
-def run_stiffness_command(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
+    from leveler.procedures import stiffness as st
+    from leveler.sim.torsion import TorsionParams
+
     try:
         tilts = st.sweep_tilts(args.max_tilt_rad, args.tilt_step_rad)
         base = TorsionParams(stiffness_nm_per_rad=args.stiffness_nm_per_rad[0])

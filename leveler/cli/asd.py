@@ -1,4 +1,4 @@
-"""The `leveler asd` command: a logged channel's ASD, optionally against a second log."""
+"""`leveler asd`: the spectrum (ASD) of a logged channel, optionally against a second log."""
 
 from __future__ import annotations
 
@@ -6,11 +6,15 @@ import argparse
 import json
 import sys
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-import numpy as np
+from leveler.errors import LogError
 
-from leveler.analysis.spectral import Spectrum, lpsd
-from leveler.log.reader import LogData, LogError, partial_note, read_log
+if TYPE_CHECKING:
+    import numpy as np
+
+    from leveler.analysis.spectral import Spectrum
+    from leveler.log.reader import LogData
 
 TABLE_FREQS_HZ = (1e-4, 1e-3, 1e-2, 1e-1, 1.0)
 #: non-finite samples (held bad readings) asd bridges: at most this fraction of the record,
@@ -19,8 +23,31 @@ MAX_BRIDGED_FRACTION = 0.01
 MAX_GAP_S = 10.0
 
 
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser(
+        "asd", help="amplitude spectral density of a logged channel (LPSD, log-spaced)",
+        description="Estimate the ASD of one channel of a leveler MCAP log with the LPSD "
+        "method (Troebs & Heinzel 2006), which keeps many averages at high frequency and "
+        "still reaches 0.1 mHz in a long log. Channels: any numeric field of the sample "
+        "topic (sensor_m, applied_v, error_m, ...) or, in simulated logs, the truth topic "
+        "(tilt_rad, thermal_tilt_rad, pendulum_rad, ...). Values a daemon logged as null "
+        "(held bad readings, driver errors) are bridged by linear interpolation if they are "
+        "at most 1% of the record and no gap is longer than 10 s, and cut off if they are at "
+        "its start or end; a note on stderr says how many. Beyond that the log is refused.")
+    p.add_argument("log", help="MCAP log written by leveler")
+    p.add_argument("--channel", default="sensor_m",
+                   help="field to analyse (default: %(default)s)")
+    p.add_argument("--compare", default=None,
+                   help="a second log (e.g. open loop) drawn and tabulated against the first")
+    p.add_argument("--plot", default=None, help="save the ASD plot as PNG")
+    p.add_argument("--json", action="store_true", help="print the spectrum as JSON")
+    p.set_defaults(func=run)
+
+
 def channel(log: LogData, name: str, path: str) -> tuple[np.ndarray, float]:
     """The named numeric series of a log and its sample rate (from the loop times)."""
+    import numpy as np
+
     for table in (log.samples, log.truth):
         if name in table:
             values = np.asarray(table[name])
@@ -55,6 +82,8 @@ class Bridged:
 
 def _runs(bad: np.ndarray) -> list[tuple[int, int]]:
     """[start, stop) of each run of True."""
+    import numpy as np
+
     edges = np.flatnonzero(np.diff(np.r_[0, bad.astype(np.int8), 0]))
     return list(zip(edges[::2].tolist(), edges[1::2].tolist(), strict=True))
 
@@ -67,6 +96,8 @@ def bridge_gaps(x: np.ndarray, fs: float, name: str, path: str) -> tuple[np.ndar
     straight line across at most MAX_BRIDGED_FRACTION of the record, no run longer than
     MAX_GAP_S, changes the spectrum far less than the glitch did. Beyond either bound the
     log is refused: the faults are then part of what the spectrum would show."""
+    import numpy as np
+
     bad = ~np.isfinite(x)
     if not bad.any():
         return x, Bridged(0, 0, 0.0, 0)
@@ -106,12 +137,17 @@ def bridge_note(path: str, name: str, total: int, b: Bridged) -> str:
 
 
 def _at(spec: Spectrum, f: float) -> float | None:
+    import numpy as np
+
     if f < spec.freq_hz[0] or f > spec.freq_hz[-1]:
         return None
     return float(np.exp(np.interp(np.log(f), np.log(spec.freq_hz), np.log(spec.asd))))
 
 
-def run_asd_command(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
+    from leveler.analysis.spectral import lpsd
+    from leveler.log.reader import partial_note, read_log
+
     curves: list[tuple[str, Spectrum]] = []
     for path in [args.log, *([args.compare] if args.compare else [])]:
         log = read_log(path)

@@ -9,25 +9,73 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from leveler.procedures.design_ip import (
-    DesignError,
-    IpModel,
-    Pick,
-    Point,
-    check_tilt,
-    default_range,
-    evaluate,
-    max_amplification_at,
-    pick,
-    plot_design,
-    table_masses,
-)
-from leveler.settings import load_config
+if TYPE_CHECKING:
+    from leveler.procedures.design_ip import IpModel, Pick, Point
 
 
-def run_design_ip_command(args: argparse.Namespace) -> int:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    design = sub.add_parser(
+        "design", help="the paper's design procedures (ip: inverted-pendulum counterweight)",
+        description="Design calculations from the paper, each a subcommand.")
+    dsub = design.add_subparsers(dest="design_command", required=True, metavar="DESIGN")
+    p = dsub.add_parser(
+        "ip", help="inverted-pendulum tilt amplifier: amplification N against counterweight",
+        description="The paper's counterweight sweep (its Figure 8) with our geometry, not its "
+        "Simscape model: a flexure of stiffness k (config [plant.pendulum]) carries a frame "
+        "(mass m_f, centre of mass L_f above the pivot; default none) and a counterweight "
+        "m_cw at height h_cw, so m g L_cm = g (m_f L_f + m_cw h_cw). For each counterweight "
+        "mass it prints m g L_cm, the small-angle amplification N = 1 / (k / (m g L_cm) - 1) "
+        "and the N = theta / phi of the full balance m g L_cm sin(theta + phi) = k theta "
+        "solved at the reference tilt phi, with the equilibrium angle theta. The stability "
+        "limit m g L_cm = k (small-angle N -> infinity) is marked; heavier counterweights are "
+        "reported unstable. --target-n picks the mass for a requested N at phi (exactly, by "
+        "the balance's closed-form inverse). The default stand is a 185 g mass 49.6 mm above "
+        "a 0.1 N m/rad flexure: m g L_cm = 0.09 N m/rad, N = 9, the paper's example.",
+        epilog="Example: leveler design ip --target-n 10 --plot ip.png. Units are SI; the "
+        "table shows theta in mrad, the plot masses in g.")
+    p.add_argument("--config", default="config/sim.toml",
+                   help="config whose [plant.pendulum] gives k and g; its com_length_m is "
+                   "the default counterweight height (default: %(default)s)")
+    p.add_argument("--target-n", type=float, default=None, metavar="N",
+                   help="pick the counterweight giving amplification N at the reference tilt")
+    p.add_argument("--tilt-rad", type=float, default=1e-3,
+                   help="reference tilt phi for the non-linear N [rad] (default: %(default)g, "
+                   "as in the paper)")
+    p.add_argument("--cw-height-m", type=float, default=None,
+                   help="height of the counterweight's centre of mass above the pivot [m] "
+                   "(default: the config's com_length_m)")
+    p.add_argument("--frame-mass-kg", type=float, default=0.0,
+                   help="mass of the rest of the pendulum [kg] (default: 0)")
+    p.add_argument("--frame-com-m", type=float, default=0.0,
+                   help="height of the frame's centre of mass above the pivot [m] "
+                   "(default: 0)")
+    p.add_argument("--mass-kg", type=float, nargs=2, default=None, metavar=("MIN", "MAX"),
+                   help="counterweight masses to sweep [kg] (default: 0.5 to 1.05 times the "
+                   "stability limit; a range across the limit is fine)")
+    p.add_argument("--step-kg", type=float, default=None,
+                   help="table step [kg] (default: a round step giving 6 to 15 rows)")
+    p.add_argument("--json", action="store_true",
+                   help="print one JSON object (model, sweep, stability_limit, pick, plot)")
+    p.add_argument("--plot", default=None, metavar="FILE.png",
+                   help="save N against counterweight mass, limit marked (PNG)")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from leveler.procedures.design_ip import (
+        DesignError,
+        IpModel,
+        check_tilt,
+        default_range,
+        evaluate,
+        pick,
+        plot_design,
+        table_masses,
+    )
+    from leveler.settings import load_config
+
     cfg, _ = load_config(args.config)
     base = cfg.plant.pendulum
     try:
@@ -63,6 +111,8 @@ def _point(p: Point) -> dict[str, Any]:
 
 def _result(args: argparse.Namespace, model: IpModel, rows: list[Point],
             chosen: Pick | None) -> dict[str, Any]:
+    from leveler.procedures.design_ip import max_amplification_at
+
     base = model.base
     return {
         "config": str(args.config),

@@ -1,4 +1,4 @@
-"""`leveler diagnose`: the findings in words, the fitted model file, and a report."""
+"""`leveler diagnose`: find and fit what the plant model misses; the fitted model, a report."""
 
 from __future__ import annotations
 
@@ -8,19 +8,44 @@ import math
 import re
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from leveler.analysis.diagnose import BANDS_HZ, Diagnosis, diagnose
-from leveler.analysis.plots import block_means, plot_asd
-from leveler.analysis.predict import Measured, load_measured
-from leveler.daemon.persist import write_atomic
 from leveler.errors import LogError
-from leveler.log.reader import partial_note
-from leveler.settings import load_config
-from leveler.sim.effects import Effect
+
+if TYPE_CHECKING:
+    from leveler.analysis.diagnose import Diagnosis
+    from leveler.analysis.predict import Measured
+    from leveler.sim.effects import Effect
 
 _EFFECTS_HEADER = re.compile(r"^\s*\[plant\.effects(\.[A-Za-z0-9_]+)?\]\s*(#.*)?$")
 _ANY_HEADER = re.compile(r"^\s*\[")
+
+
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser(
+        "diagnose", help="find, name and fit what the plant model is missing",
+        description="Replay the log, look for structure in the residual (spectral lines, "
+        "coherence with the actuator and the temperature, a lattice in the readings, "
+        "trends), fit each named effect (periodic_disturbance, temperature_coupling, "
+        "actuator_delay, actuator_hysteresis, extra_resonance, sensor_gain_error, "
+        "sensor_drift, adc_quantization) on the first two thirds of the log and keep it only "
+        "if it predicts the last third better than its complexity penalty; repeat while one "
+        "does. Writes the updated model (a plain config: `leveler sim --config` and "
+        "`leveler replay --model` use it) next to the log as LOG.fitted.toml. Says so, and "
+        "writes nothing, when no effect is missing.")
+    p.add_argument("log", help="MCAP log written by leveler (or by `leveler import-csv`)")
+    p.add_argument("--model", default=None, help="config file whose [plant] is the model "
+                   "to test (default: the config stored in the log)")
+    p.add_argument("--model-out", default=None,
+                   help="where to write the fitted model (default: LOG.fitted.toml)")
+    p.add_argument("--report", default=None, metavar="DIR",
+                   help="write residual_asd.png, timeseries.png and summary.md here")
+    p.add_argument("--max-effects", type=int, default=4,
+                   help="stop after this many effects (default: %(default)s)")
+    p.add_argument("--json", action="store_true",
+                   help="print one JSON object: effects, gap_before, gap_after, model_out, "
+                   "and every candidate tried with its scores")
+    p.set_defaults(func=run)
 
 
 def _toml_value(v: Any) -> str:
@@ -66,6 +91,8 @@ def _gap_dict(g: dict[str, Any]) -> dict[str, Any]:
 
 def headline_band(d: Diagnosis) -> str | None:
     """The band where the model improved most (what a summary line should quote)."""
+    from leveler.analysis.diagnose import BANDS_HZ
+
     best, ratio = None, 1.0
     for band in BANDS_HZ:
         a, b = d.gap_before["band_rms_m"][band], d.gap_after["band_rms_m"][band]
@@ -119,7 +146,8 @@ def write_report(directory: Path, d: Diagnosis, meas: Measured, text: str,
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from leveler.analysis.diagnose import residual
+    from leveler.analysis.diagnose import BANDS_HZ, residual
+    from leveler.analysis.plots import block_means, plot_asd
     from leveler.analysis.predict import Predictor
     from leveler.analysis.spectral import lpsd
 
@@ -177,7 +205,13 @@ def _nm(v: float | None) -> str:
     return "n/a" if v is None else f"{v * 1e9:.3g}"
 
 
-def run_diagnose_command(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
+    from leveler.analysis.diagnose import diagnose
+    from leveler.analysis.predict import load_measured
+    from leveler.daemon.persist import write_atomic
+    from leveler.log.reader import partial_note
+    from leveler.settings import load_config
+
     meas = load_measured(args.log, args.model)
     if meas.incomplete:
         print(f"leveler diagnose: {partial_note(args.log, meas.incomplete, len(meas.y_m))}",

@@ -5,21 +5,52 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import logging
 import math
 import signal
 import threading
 from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from leveler.emulate.faults import Fault, check_kinds, start_schedule
-from leveler.rt import freeze_heap
-from leveler.settings import Config, load_config
-from leveler.sim.plant import Plant
+from leveler.emulate.faults import Fault, check_kinds, parse_fault, start_schedule
 from leveler.typed_config import ConfigError
 
+if TYPE_CHECKING:
+    from leveler.settings import Config
+    from leveler.sim.plant import Plant
 
-def run_emulate_command(args: argparse.Namespace) -> int:
+
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser(
+        "emulate", help="serve the simulated plant over the real device protocol",
+        description="Stand in for the hardware: serve the simulated plant ([plant] of the "
+        "config) through the protocol the config's drivers speak, at the addresses and "
+        "with the scaling the config gives, so `leveler run --config` the same file levels "
+        "it exactly as it would the real table. modbus: a Modbus TCP server at "
+        "[sensor.modbus] host:port (input registers: the sensor; holding registers: the "
+        "piezo). serial: a piezo amplifier ([actuator.serial] protocol) and a sensor "
+        "controller on pseudo-terminals, linked at the config's port paths (which must be "
+        "free paths, e.g. /tmp/leveler-piezo, not real devices); modbus with transport = "
+        "\"rtu\" serves a pty linked at serial_port. Runs until Ctrl-C.")
+    p.add_argument("kind", choices=["modbus", "serial"], help="which protocol to serve")
+    p.add_argument("--config", required=True, help="the lab config to serve")
+    p.add_argument("--seed", type=int, default=None,
+                   help="disturbance and noise seed (default: [sim] seed)")
+    p.add_argument("--fault", action="append", default=[], type=parse_fault,
+                   metavar="T:KIND[:COUNT]",
+                   help="spoil COUNT (default 1) replies from T seconds after the start; "
+                   "repeatable. modbus KINDs: no_reply, exception (code 4), garbage, drop. "
+                   "serial KINDs: piezo.X or sensor.X with X one of no_reply, garbage, "
+                   "partial_line, drop, error. E.g. --fault 30:garbage --fault 60:exception:2")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import logging
+
+    from leveler.settings import load_config
+    from leveler.sim.plant import Plant
+
     cfg, _ = load_config(args.config)
     try:
         check_kinds(args.fault, args.kind)
@@ -60,6 +91,7 @@ def _modbus(args: argparse.Namespace, cfg: Config, plant: Plant, seed: int,
     link = (_link_path(args, "sensor.modbus.serial_port", s.serial_port)
             if s.transport == "rtu" else None)
     from leveler.emulate.modbus import ModbusEmulator
+    from leveler.rt import freeze_heap
 
     with (ModbusEmulator(plant, s, a, host=s.host, port=s.port, transport=s.transport) as emu,
           _linked({} if link is None else {link: emu.serial_port})):
@@ -88,6 +120,7 @@ def _serial(args: argparse.Namespace, cfg: Config, plant: Plant, seed: int,
     piezo_link = _link_path(args, "actuator.serial.port", a.port)
     sensor_link = _link_path(args, "sensor.serial.port", s.port)
     from leveler.emulate.serial import SensorFormat, SerialEmulator
+    from leveler.rt import freeze_heap
 
     decimals = max(0, math.ceil(math.log10(s.scale_m_per_unit / 1e-12)))
     fmt = SensorFormat(query=s.query, unit_m=s.scale_m_per_unit, decimals=decimals,

@@ -19,17 +19,65 @@ import json
 import math
 import sys
 from dataclasses import replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
+from leveler.cli.common import add_socket, duration
 from leveler.daemon.client import Client, ClientError
-from leveler.loop.modulation import Response, SquareWave, response
-from leveler.sim.torsion import TorsionParams
-from leveler.sim.torsion import simulate as simulate_tp
+
+if TYPE_CHECKING:
+    import numpy as np
+
+    from leveler.loop.modulation import Response, SquareWave
+    from leveler.sim.torsion import TorsionParams
 
 
-def run_modulate_command(args: argparse.Namespace) -> int:
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser(
+        "modulate", help="square-wave tilt modulation by the piezo; the pendulum's response",
+        description="Drive the piezo in a square wave about the voltage it holds, with the "
+        "loop open, and measure the inverted pendulum's step: peak to peak, per piezo volt, "
+        "as platform tilt, and against what the config's piezo geometry (stroke / support "
+        "spacing) predicts. The running daemon executes it as a logged procedure (state "
+        "`modulating`, `procedure` events, every sample in the log); it refuses while the "
+        "loop is engaged unless --force, which opens the loop for the wave and closes it "
+        "again afterwards. `leveler stop` aborts a wave; a fault ends it with the piezo safe. "
+        "With --sim the same procedure runs on the simulated stand in virtual time.")
+    p.add_argument("--amplitude-v", type=float, required=True,
+                   help="piezo swing about the held voltage [V]: +amplitude for the first half "
+                   "of each period, -amplitude for the second (peak to peak = 2 x amplitude)")
+    p.add_argument("--period", type=duration, required=True,
+                   help="square-wave period, e.g. 60s or 5min (at least 4 loop periods)")
+    p.add_argument("--cycles", type=int, default=3, help="number of periods (default: 3)")
+    p.add_argument("--force", action="store_true",
+                   help="modulate even if the loop is engaged (it closes again afterwards)")
+    p.add_argument("--json", action="store_true", help="print the result as one JSON object")
+    p.add_argument("--sim", action="store_true",
+                   help="run on the simulated stand in virtual time instead of the daemon")
+    p.add_argument("--config", default=None,
+                   help="with --sim: the stand's config (default: config/sim.toml)")
+    p.add_argument("--settle", type=duration, default=0.0,
+                   help="with --sim: idle time before the wave (default: 0)")
+    p.add_argument("--seed", type=int, default=None,
+                   help="with --sim: disturbance and noise seed (default: [sim] seed)")
+    p.add_argument("--plot", default=None, help="with --sim: time-series plot (PNG)")
+    p.add_argument("--tp-peak-to-peak-m", type=float, default=None,
+                   help="the torsion pendulum's step under the same wave, read off the thrust "
+                   "stand [m]: gives the inverted/torsion ratio and the roll/pitch split "
+                   "(with --sim it is simulated)")
+    p.add_argument("--tp-com-x-m", type=float, default=1e-4,
+                   help="torsion pendulum's centre-of-mass offset along x, coupling roll [m] "
+                   "(default: %(default)g; measure yours with calibrate-com)")
+    p.add_argument("--tp-com-y-m", type=float, default=None,
+                   help="its offset along y, coupling pitch [m] (default: the model's, "
+                   "0.27 mm)")
+    p.add_argument("--tilt-axis-deg", type=float, default=30.0,
+                   help="with --sim: the piezo tilts the platform along this angle from the "
+                   "torsion pendulum's pitch axis (default: %(default)g)")
+    add_socket(p)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
     if args.sim:
         result = _simulated(args)
     else:
@@ -47,6 +95,8 @@ def run_modulate_command(args: argparse.Namespace) -> int:
 
 
 def _tp_params(args: argparse.Namespace) -> TorsionParams:
+    from leveler.sim.torsion import TorsionParams
+
     base = TorsionParams()
     return replace(base, com_x_m=args.tp_com_x_m,
                    com_y_m=base.com_y_m if args.tp_com_y_m is None else args.tp_com_y_m)
@@ -68,6 +118,10 @@ def _torsion(r: dict[str, Any], tp_pp_m: float, tp: TorsionParams) -> dict[str, 
 
 def _on_daemon(args: argparse.Namespace) -> dict[str, Any]:
     """Ask the daemon to run the wave, follow it on the watch stream, then measure."""
+    import numpy as np
+
+    from leveler.loop.modulation import SquareWave
+
     with Client(args.socket) as client:
         reply = client.request("modulate", amplitude_v=args.amplitude_v, period_s=args.period,
                                cycles=args.cycles, force=args.force)
@@ -94,78 +148,56 @@ def _on_daemon(args: argparse.Namespace) -> dict[str, Any]:
 def _simulated(args: argparse.Namespace) -> dict[str, Any]:
     """The same procedure on the simulated stand in virtual time: idle for --settle, then
     the wave, with the true platform tilt (known only here) next to the reading."""
-    from leveler.loop.clock import VirtualClock
-    from leveler.loop.cycle import IDLE, Loop
-    from leveler.loop.pid import PID
-    from leveler.records import Event, Sample, Truth
+
+    from leveler.loop.cycle import IDLE
+    from leveler.loop.modulation import response
     from leveler.settings import load_config
-    from leveler.stand import open_stand
+    from leveler.sim.torsion import simulate as simulate_tp
+    from leveler.virtual import VirtualStand
 
     cfg, _ = load_config(args.config or "config/sim.toml")
     if cfg.sensor.backend != "sim":
         raise ClientError(f"{args.config}: --sim needs the simulated backend; to modulate "
                           "hardware, run the daemon and leave out --sim")
-    stand = open_stand(cfg, seed=cfg.sim.seed if args.seed is None else args.seed)
-    stand.connect()
-
-    class Recorder:
-        def __init__(self) -> None:
-            self.rows: list[tuple[float, float, float]] = []
-            self.tilt_rad: list[float] = []
-
-        def sample(self, s: Sample, log_time_ns: int) -> None:
-            self.rows.append((s.t_s, s.sensor_m, s.applied_v))
-
-        def truth(self, tr: Truth, log_time_ns: int) -> None:
-            self.tilt_rad.append(tr.tilt_rad)
-
-        def event(self, e: Event, log_time_ns: int) -> None:
-            pass
-
-    rec = Recorder()
-    dt = 1.0 / cfg.loop.rate_hz
-    loop = Loop(stand.sensor, stand.actuator, PID(cfg.controller.pid_config()), dt, [rec],
-                stand.truth, policy=cfg.loop)
-    clock = VirtualClock(dt, start_wall_ns=0)
-    t = clock.tick()
-    loop.cycle(t, 0)
-    while t < args.settle:
-        t = clock.tick()
-        loop.cycle(t, 0)
-    t = clock.tick()
-    try:
-        wave = loop.modulate(t, args.amplitude_v, args.period, args.cycles)
-    except ValueError as exc:
-        raise ClientError(f"modulate: {exc}") from None
-    first = len(rec.rows)
-    loop.cycle(t, 0)
-    while loop.state != IDLE:
-        t = clock.tick()
-        loop.cycle(t, 0)
-    rows = np.array(rec.rows[first:])
+    seed = cfg.sim.seed if args.seed is None else args.seed
+    with VirtualStand(cfg, seed, start_wall_ns=0) as vs:
+        vs.cycle()
+        while vs.t_s < args.settle:
+            vs.step()
+        vs.tick()
+        try:
+            wave = vs.loop.modulate(vs.t_s, args.amplitude_v, args.period, args.cycles)
+        except ValueError as exc:
+            raise ClientError(f"modulate: {exc}") from None
+        first = len(vs.recorder.t_s)
+        vs.cycle()
+        while vs.loop.state != IDLE:
+            vs.step()
+        run = vs.recorded(first)
+    t, y, v = run.t_s, run.sensor_m, run.applied_v
     pend, pz = cfg.plant.pendulum, cfg.plant.piezo
     model = {"sensor_m_per_rad": pend.amplification * pend.sensor_arm_m,
              "tilt_rad_per_v": pz.gain_m_per_v / cfg.plant.platform.support_spacing_m}
-    result = _result(wave, rows[:, 0], rows[:, 1], rows[:, 2], model, "simulated stand")
-    pitch = np.array(rec.tilt_rad[first:])
-    result["true_tilt_peak_to_peak_rad"] = response(wave, rows[:, 0], pitch).peak_to_peak
+    result = _result(wave, t, y, v, model, "simulated stand")
+    result["true_tilt_peak_to_peak_rad"] = response(wave, t, run.tilt_rad).peak_to_peak
     # The torsion pendulum on the same platform: the piezo tilts it along an axis at
     # --tilt-axis-deg from its pitch axis, so its roll is pitch x tan(angle) of the piezo's part.
-    piezo_pitch = (rows[:, 2] - pz.ref_v) * model["tilt_rad_per_v"]
+    piezo_pitch = (v - pz.ref_v) * model["tilt_rad_per_v"]
     roll = piezo_pitch * math.tan(math.radians(args.tilt_axis_deg))
     tp = _tp_params(args)
-    theta = simulate_tp(tp, dt, 0.0, pitch, roll)
-    result["tp_simulated_peak_to_peak_m"] = response(wave, rows[:, 0],
-                                                     theta * tp.arm_m).peak_to_peak
+    theta = simulate_tp(tp, vs.dt_s, 0.0, run.tilt_rad, roll)
+    result["tp_simulated_peak_to_peak_m"] = response(wave, t, theta * tp.arm_m).peak_to_peak
     result["tilt_axis_deg_simulated"] = args.tilt_axis_deg
     if args.plot:
-        _plot(args.plot, wave, rows[:, 0], rows[:, 1], rows[:, 2])
+        _plot(args.plot, wave, t, y, v)
         result["plot"] = args.plot
     return result
 
 
 def _result(wave: SquareWave, t: np.ndarray, y: np.ndarray, v: np.ndarray,
             model: dict[str, float], where: str) -> dict[str, Any]:
+    from leveler.loop.modulation import response
+
     ip: Response = response(wave, t, y)
     piezo = response(wave, t, v)
     expected_tilt = piezo.peak_to_peak * model["tilt_rad_per_v"]

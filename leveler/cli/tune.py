@@ -6,12 +6,53 @@ import argparse
 import math
 from pathlib import Path
 
+from leveler.cli.common import add_socket
 from leveler.daemon.client import Client, ClientError
 from leveler.daemon.protocol import TUNE_INF_OK
 
 FLAG_KEYS = {"kp": "kp_v_per_m", "ki": "ki_v_per_m_s", "kd": "kd_v_s_per_m",
              "setpoint": "setpoint_m", "min_v": "output_min_v", "max_v": "output_max_v",
              "slew": "slew_v_per_s"}
+
+
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    p = sub.add_parser(
+        "tune", help="change gains, setpoint, limits or slew live; or suggest gains",
+        description="Change controller settings of the running daemon. Values are checked "
+        "before they are applied; gain changes are bumpless (the piezo command does not jump). "
+        "--persist also writes them into the daemon's config file (atomically, comments kept). "
+        "New gains that the plant model (python-control) predicts make the loop unstable are "
+        "refused unless --force. "
+        "With --suggest, propose gains from the configured plant model (python-control) and "
+        "print margins; --apply sends them.")
+    p.add_argument("--kp", type=float, help="proportional gain [V/m]")
+    p.add_argument("--ki", type=float, help="integral gain [V/(m s)]")
+    p.add_argument("--kd", type=float, help="derivative gain [V s/m]")
+    p.add_argument("--setpoint", type=float, help="setpoint of the sensor reading [m] (SI: "
+                   "1e-6 is 1 um; refused beyond +-1 mm)")
+    p.add_argument("--min-v", type=float, help="lower output limit [V]; a range that excludes "
+                   "the present output moves the piezo into it at once, at the actuator's own "
+                   "slew limit, not the controller's (--slew): limits protect the hardware, "
+                   "the slew only smooths")
+    p.add_argument("--max-v", type=float, help="upper output limit [V] (as --min-v)")
+    p.add_argument("--slew", type=float, help="output slew limit [V/s]; inf: no limit")
+    p.add_argument("--persist", action="store_true", help="also write the values to the "
+                   "daemon's config file")
+    p.add_argument("--force", action="store_true", help="apply gains even if the plant model "
+                   "predicts an unstable loop (refused otherwise)")
+    p.add_argument("--suggest", action="store_true", help="propose gains from the plant model")
+    p.add_argument("--bandwidth", type=float, default=None,
+                   help="with --suggest: wanted unity-gain frequency [Hz] (default: the highest "
+                   "the margins allow)")
+    p.add_argument("--phase-margin", type=float, default=60.0,
+                   help="with --suggest: wanted phase margin [deg] (default: 60)")
+    p.add_argument("--plot", default=None, help="with --suggest: Bode/Nyquist plot (PNG)")
+    p.add_argument("--config", default=None, help="with --suggest: plant model config "
+                   "(default: the running daemon's, else config/sim.toml)")
+    p.add_argument("--apply", action="store_true", help="with --suggest: send the proposal to "
+                   "the daemon")
+    add_socket(p)
+    p.set_defaults(func=run)
 
 
 def _checked(flag: str, key: str, value: float) -> float | str:
@@ -30,7 +71,7 @@ def _shown(value: float | None) -> str:
     return "inf" if value is None else f"{value:g}"  # JSON carries infinity as null
 
 
-def run_tune_command(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     values = {key: _checked(flag, key, getattr(args, flag)) for flag, key in FLAG_KEYS.items()
               if getattr(args, flag) is not None}
     if args.suggest:

@@ -1,10 +1,9 @@
-"""The client side of the control socket, and the CLI verbs built on it."""
+"""The client side of the control socket: requests to a running daemon, and its replies."""
 
 from __future__ import annotations
 
 import contextlib
 import socket
-import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -18,6 +17,8 @@ from leveler.daemon.protocol import (
     client_socket_candidates,
     socket_problem,
 )
+
+CONNECT_WAIT_S = 5.0  # retrying a full queue of pending connections
 
 
 class ClientError(Exception):
@@ -63,8 +64,10 @@ class Client:
 
     def _connect(self, path: Path, timeout_s: float) -> None:
         """connect(), retried while the daemon's queue of pending connections is full
-        (a Unix socket then says EAGAIN at once rather than waiting)."""
-        deadline = time.monotonic() + timeout_s
+        (a Unix socket then says EAGAIN at once rather than waiting), for at most
+        CONNECT_WAIT_S: a reply may take long (a reload), but a queue that stays full says
+        what it has to say in seconds."""
+        deadline = time.monotonic() + min(timeout_s, CONNECT_WAIT_S)
         while True:
             try:
                 self._sock.connect(str(path))
@@ -151,106 +154,3 @@ class Client:
             if not line:
                 return
             yield orjson.loads(line)["sample"]
-
-
-_BARS = " ▁▂▃▄▅▆▇█"
-
-
-def sparkline(values: list[float]) -> str:
-    """A small trend: one block character per value, scaled to the window's range."""
-    if not values:
-        return ""
-    lo, hi = min(values), max(values)
-    span = hi - lo or 1.0
-    return "".join(_BARS[round((v - lo) / span * (len(_BARS) - 1))] for v in values)
-
-
-def _limit(value: float | None) -> str:
-    """A rate limit from JSON, where infinity (no limit) arrives as null."""
-    return "none" if value is None else f"{value:g}"
-
-
-def _driver_errors(counts: dict[str, int] | None) -> str:
-    if counts is None:  # a daemon older than the count
-        return "errors      (driver errors not reported by this daemon)"
-    total = sum(counts.values())
-    parts = ", ".join(f"{device} {n}" for device, n in counts.items())
-    return f"errors      {total} driver errors since start ({parts})"
-
-
-def _log_line(log: dict[str, Any]) -> str:
-    where = log["path"] if log["path"] else "no file open (logging is down; retrying)"
-    health = "healthy" if log["healthy"] else f"FAULT: {log['error']}"
-    faults = log.get("faults", 0)  # a daemon older than the count has none
-    return (f"log         {where}, {log['samples_written']} samples, {health}"
-            + (f", {log['dropped']} dropped" if log["dropped"] else "")
-            + (f"\n            {faults} log fault(s) since start; last: {log['last_fault']}"
-               if faults else ""))
-
-
-def format_status(st: dict[str, Any]) -> str:
-    s = st.get("sample") or {}
-    c, lp, log = st["controller"], st["loop"], st["log"]
-    lines = [
-        f"leveler {st['version']} (pid {st['pid']}), up {st['uptime_s'] / 60:.1f} min, "
-        f"config {st['config_path']}",
-        f"state       {st['state']}" + (f"  ({st['fault_reason']})" if st["fault_reason"] else ""),
-        *([f"            LOOP STALLED: no cycle for {lp['last_cycle_age_s']:.1f} s (a device "
-           "call that does not return?); values below are from the last cycle"]
-          if lp.get("stalled") else []),
-        _driver_errors(st.get("driver_errors")),
-    ]
-    if s:
-        lines += [
-            f"sensor      {s['sensor_m'] * 1e9:+.2f} nm   (tilt {st['tilt_rad'] * 1e9:+.2f} nrad)"
-            if s.get("sensor_m") is not None else "sensor      no valid reading",
-            ("piezo       last write failed (voltage held)"
-             if s.get("applied_v") is None else f"piezo       {s['applied_v']:.3f} V applied")
-            + f", {s['command_v']:.3f} V commanded"
-            + ("  SATURATED" if s["saturated"] else ""),
-        ]
-    lines += [
-        f"controller  kp {c['kp_v_per_m']:.4g} V/m  ki {c['ki_v_per_m_s']:.4g} V/(m s)  "
-        f"kd {c['kd_v_s_per_m']:.4g} V s/m  setpoint {c['setpoint_m']:.4g} m  "
-        f"limits {c['output_min_v']:g}..{c['output_max_v']:g} V  "
-        f"slew {_limit(c['slew_v_per_s'])} V/s",
-        f"loop        {lp['rate_hz']:g} Hz, {lp['cycles']} cycles, period p50/p99/max "
-        f"{lp['period_p50_s'] * 1e3:.2f}/{lp['period_p99_s'] * 1e3:.2f}/"
-        f"{lp['period_max_s'] * 1e3:.2f} ms, overruns {lp['overruns']}",
-        _log_line(log),
-    ]
-    return "\n".join(lines)
-
-
-def format_reload(reply: dict[str, Any]) -> str:
-    """What a reload changed, one effective value a line; sections that wait for a restart."""
-    changed = reply["changed"]
-    lines = [f"reload applied: {len(changed)} value(s) changed"
-             + (":" if changed else " (the file says what the daemon runs)")]
-    lines += [f"  {key}: {old!r} -> {new!r}" for key, (old, new) in changed.items()]
-    if reply["dropped"]:
-        lines.append("back to their defaults (no longer in the file): "
-                     + ", ".join(reply["dropped"]))
-    if reply["needs_restart"]:
-        lines.append("takes effect at the next restart: ["
-                     + "], [".join(reply["needs_restart"]) + "]")
-    return "\n".join(lines)
-
-
-def run_watch(client: Client, rate_hz: float, count: int | None) -> None:
-    """Print samples as they come: values and a trend of the last 40 sensor readings."""
-    tty = sys.stdout.isatty()
-    trend: list[float] = []
-    for n, s in enumerate(client.watch(rate_hz), start=1):
-        if s["sensor_m"] is not None:
-            trend = [*trend[-39:], s["sensor_m"]]
-        sensor = (f"{s['sensor_m'] * 1e9:+9.2f} nm" if s["sensor_m"] is not None
-                  else "   (no reading)")
-        line = (f"t={s['t_s']:10.2f} s  {s['state']:<7}  sensor={sensor}  "
-                f"piezo={s['applied_v']:8.3f} V  {sparkline(trend)}")
-        sys.stdout.write(f"\r{line}\033[K" if tty else f"{line}\n")
-        sys.stdout.flush()
-        if count is not None and n >= count:
-            break
-    if tty:
-        sys.stdout.write("\n")

@@ -28,7 +28,7 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -41,20 +41,6 @@ from leveler.daemon.protocol import (
 )
 from leveler.errors import ControlError
 from leveler.rt import demote_thread
-from leveler.typed_config import positive
-
-
-@dataclass(frozen=True, slots=True)
-class ControlConfig:
-    """The control socket: where it lives and who may use it."""
-
-    socket_path: str = ""
-    group: str = ""
-    max_clients: int = field(default=16, metadata={"ge": 1, "le": 1024})
-    # any uid but root's and the daemon's own: one user cannot lock the others out
-    max_clients_per_uid: int = field(default=8, metadata={"ge": 1, "le": 1024})
-    idle_timeout_s: float = positive(60.0)
-
 
 _log = logging.getLogger(__name__)
 _UCRED = struct.Struct("3i")

@@ -8,11 +8,9 @@ computed from it. Format: docs/log-format.md, "Importing other systems' data (CS
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import math
 import os
-import sys
 from array import array
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -213,7 +211,8 @@ def _parse_rows(data: CsvData, lines: Iterator[tuple[int, str]], cols: _Columns)
             ks.append(k)
 
 
-def _listing(bad: list[BadRow]) -> str:
+def listing(bad: list[BadRow]) -> str:
+    """The bad rows, one a line, at most MAX_LISTED of them."""
     shown = "\n".join(f"  {b}" for b in bad[:MAX_LISTED])
     more = f"\n  ... and {len(bad) - MAX_LISTED} more" if len(bad) > MAX_LISTED else ""
     return f"{shown}{more}"
@@ -257,7 +256,7 @@ def read_csv(path: str | Path, *, skip_bad: bool = False) -> CsvData:
     _parse_rows(data, lines, cols)
     if data.bad and not skip_bad:
         raise LogError(f"{path}: {len(data.bad)} bad row{'s' if len(data.bad) > 1 else ''} "
-                       f"(fix them, or --skip-bad to leave them out):\n{_listing(data.bad)}")
+                       f"(fix them, or --skip-bad to leave them out):\n{listing(data.bad)}")
     if data.rows < MIN_ROWS:
         what = "no data rows" if not data.rows else f"only {data.rows} good data rows"
         raise LogError(f"{path}: {what} after the header; at least {MIN_ROWS} are needed")
@@ -356,15 +355,4 @@ def summary(data: CsvData, out: str | Path) -> str:
             f"skipped bad rows: {len(data.bad)}")
 
 
-def run_import_csv_command(args: argparse.Namespace) -> int:
-    """`leveler import-csv`: skipped rows go to stderr, the summary to stdout."""
-    data = import_csv(args.csv, args.out, skip_bad=args.skip_bad, force=args.force)
-    if data.bad:
-        print(f"leveler import-csv: skipped {len(data.bad)} bad "
-              f"row{'s' if len(data.bad) > 1 else ''}:\n{_listing(data.bad)}", file=sys.stderr)
-    print(summary(data, args.out))
-    return 0
-
-
-__all__ = ["BadRow", "CsvData", "import_csv", "read_csv", "run_import_csv_command", "summary",
-           "write_log"]
+__all__ = ["BadRow", "CsvData", "import_csv", "listing", "read_csv", "summary", "write_log"]
