@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from leveler.log.reader import read_log
-from leveler.loop.modulation import SquareWave, response
+from leveler.loop.modulation import SquareWave
+from leveler.procedures.tilt_modulation import response
 
 
 def test_square_wave_shape_and_end() -> None:

@@ -1,16 +1,6 @@
 """`leveler modulate`: square-wave tilt modulation by the piezo, run by the daemon (a logged
-procedure of the loop) or on the simulated stand, and the inverted pendulum's response to it.
-
-The response, against what the piezo geometry of the config's model predicts, checks the
-lever arm (piezo stroke / support spacing) and the pendulum's amplification on the stand.
-
-With the torsion pendulum's own step (`--tp-peak-to-peak-m`, read off the thrust stand; or
-simulated with --sim) it gives the paper's ratio (3 um on the inverted pendulum went with about
-0.4 um on the torsion pendulum) and the roll/pitch split it implies. The inverted pendulum
-senses pitch (its axis is taken as the torsion pendulum's pitch axis); the torsion pendulum
-answers M g (pitch l_cm,y + roll l_cm,x) / K0 at its arm, so with its centre-of-mass offsets
-known (`leveler calibrate-com`) the roll that went with the measured pitch follows.
-"""
+procedure of the loop) or on the simulated stand in virtual time (--sim); what the pendulums
+made of it is leveler.procedures.tilt_modulation."""
 
 from __future__ import annotations
 
@@ -27,7 +17,7 @@ from leveler.daemon.client import Client, ClientError
 if TYPE_CHECKING:
     import numpy as np
 
-    from leveler.loop.modulation import Response, SquareWave
+    from leveler.loop.modulation import SquareWave
     from leveler.sim.torsion import TorsionParams
 
 
@@ -86,7 +76,9 @@ def run(args: argparse.Namespace) -> int:
         result = _on_daemon(args)
     tp_pp = result.pop("tp_simulated_peak_to_peak_m", args.tp_peak_to_peak_m)
     if tp_pp is not None:
-        result["tp"] = _torsion(result, tp_pp, _tp_params(args))
+        from leveler.procedures.tilt_modulation import torsion_split
+
+        result["tp"] = torsion_split(result, tp_pp, _tp_params(args))
     if args.json:
         print(json.dumps(result))
     else:
@@ -100,20 +92,6 @@ def _tp_params(args: argparse.Namespace) -> TorsionParams:
     base = TorsionParams()
     return replace(base, com_x_m=args.tp_com_x_m,
                    com_y_m=base.com_y_m if args.tp_com_y_m is None else args.tp_com_y_m)
-
-
-def _torsion(r: dict[str, Any], tp_pp_m: float, tp: TorsionParams) -> dict[str, Any]:
-    """The IP/TP ratio, and the roll that the TP's step implies next to the IP's pitch."""
-    pitch = r["tilt_peak_to_peak_rad"]
-    per_rad = tp.arm_m * tp.mass_kg * tp.gravity_m_per_s2 / tp.stiffness_nm_per_rad
-    out: dict[str, Any] = {"peak_to_peak_m": tp_pp_m, "ip_over_tp": r["ip_peak_to_peak_m"]
-                           / tp_pp_m, "pitch_only_peak_to_peak_m": per_rad * pitch * tp.com_y_m,
-                           "com_x_m": tp.com_x_m, "com_y_m": tp.com_y_m}
-    if tp.com_x_m:
-        roll = (tp_pp_m / per_rad - pitch * tp.com_y_m) / tp.com_x_m
-        out |= {"roll_peak_to_peak_rad": roll, "roll_over_pitch": roll / pitch,
-                "tilt_axis_deg": math.degrees(math.atan2(roll, pitch))}
-    return out
 
 
 def _on_daemon(args: argparse.Namespace) -> dict[str, Any]:
@@ -142,7 +120,9 @@ def _on_daemon(args: argparse.Namespace) -> dict[str, Any]:
             t.append(s["t_s"])
             y.append(np.nan if s["sensor_m"] is None else s["sensor_m"])
             v.append(np.nan if s["applied_v"] is None else s["applied_v"])
-    return _result(wave, np.array(t), np.array(y), np.array(v), reply["model"], "daemon")
+    from leveler.procedures.tilt_modulation import analyze
+
+    return analyze(wave, np.array(t), np.array(y), np.array(v), reply["model"], "daemon")
 
 
 def _simulated(args: argparse.Namespace) -> dict[str, Any]:
@@ -150,7 +130,7 @@ def _simulated(args: argparse.Namespace) -> dict[str, Any]:
     the wave, with the true platform tilt (known only here) next to the reading."""
 
     from leveler.loop.cycle import IDLE
-    from leveler.loop.modulation import response
+    from leveler.procedures.tilt_modulation import analyze, response
     from leveler.settings import load_config
     from leveler.sim.torsion import simulate as simulate_tp
     from leveler.virtual import VirtualStand
@@ -178,7 +158,7 @@ def _simulated(args: argparse.Namespace) -> dict[str, Any]:
     pend, pz = cfg.plant.pendulum, cfg.plant.piezo
     model = {"sensor_m_per_rad": pend.amplification * pend.sensor_arm_m,
              "tilt_rad_per_v": pz.gain_m_per_v / cfg.plant.platform.support_spacing_m}
-    result = _result(wave, t, y, v, model, "simulated stand")
+    result = analyze(wave, t, y, v, model, "simulated stand")
     result["true_tilt_peak_to_peak_rad"] = response(wave, t, run.tilt_rad).peak_to_peak
     # The torsion pendulum on the same platform: the piezo tilts it along an axis at
     # --tilt-axis-deg from its pitch axis, so its roll is pitch x tan(angle) of the piezo's part.
@@ -192,31 +172,6 @@ def _simulated(args: argparse.Namespace) -> dict[str, Any]:
         _plot(args.plot, wave, t, y, v)
         result["plot"] = args.plot
     return result
-
-
-def _result(wave: SquareWave, t: np.ndarray, y: np.ndarray, v: np.ndarray,
-            model: dict[str, float], where: str) -> dict[str, Any]:
-    from leveler.loop.modulation import response
-
-    ip: Response = response(wave, t, y)
-    piezo = response(wave, t, v)
-    expected_tilt = piezo.peak_to_peak * model["tilt_rad_per_v"]
-    tilt = ip.peak_to_peak / model["sensor_m_per_rad"]
-    return {
-        "where": where,
-        "wave": {"center_v": wave.center_v, "amplitude_v": wave.amplitude_v,
-                 "period_s": wave.period_s, "cycles": wave.cycles},
-        "samples": len(t),
-        "piezo_peak_to_peak_v": piezo.peak_to_peak,
-        "ip_peak_to_peak_m": ip.peak_to_peak,
-        "ip_scatter_m": ip.scatter,
-        "ip_steps": ip.steps,
-        "ip_m_per_v": ip.peak_to_peak / piezo.peak_to_peak,
-        "tilt_peak_to_peak_rad": tilt,
-        "model": model,
-        "model_tilt_peak_to_peak_rad": expected_tilt,
-        "measured_over_model": tilt / expected_tilt,
-    }
 
 
 def _report(r: dict[str, Any]) -> str:

@@ -1,19 +1,14 @@
-"""Square-wave tilt modulation by the piezo, and what the inverted pendulum made of it.
+"""Square-wave tilt modulation by the piezo: the wave the loop drives.
 
 The paper modulates the platform tilt with the piezo to see how strongly the torsion pendulum
-couples to it (3 um at the inverted pendulum's end went with about 0.4 um on the torsion
-pendulum). The daemon runs the wave as a procedure of the loop (state `modulating`, loop
-open, every sample logged); `response` reads the step size back from the samples.
+couples to it. The daemon runs the wave as a procedure of the loop (state `modulating`, loop
+open, every sample logged); leveler.procedures.tilt_modulation reads the response back.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-
-import numpy as np
-
-SETTLED_FRACTION = 0.5  # of each half period: the pendulum rings down in the first half
 
 
 @dataclass(frozen=True, slots=True)
@@ -57,37 +52,3 @@ class SquareWave:
         up = (phase % 1.0) < 0.5 - 1e-9
         return self.center_v + (self.amplitude_v if up else -self.amplitude_v)
 
-
-@dataclass(frozen=True, slots=True)
-class Response:
-    """Peak-to-peak step of a signal under the wave: mean and scatter over the half periods."""
-
-    peak_to_peak: float
-    scatter: float  # standard deviation of the single steps
-    steps: int
-
-
-def response(wave: SquareWave, t_s: np.ndarray, y: np.ndarray) -> Response:
-    """The signal's step between the high and the low half periods.
-
-    Each half period contributes the mean of its settled part (the last SETTLED_FRACTION);
-    a step is a high mean minus the mean of the two lows around it (and the other way round),
-    which cancels a linear drift. NaN samples (failed reads) are left out.
-    """
-    half = wave.period_s / 2
-    means = []
-    for k in range(2 * wave.cycles):
-        a = wave.start_t_s + (k + 1 - SETTLED_FRACTION) * half
-        b = wave.start_t_s + (k + 1) * half
-        sel = (t_s >= a) & (t_s < b) & np.isfinite(y)
-        if not sel.any():
-            raise ValueError(f"no samples in half period {k} ({a:.3f}..{b:.3f} s): the run "
-                             "is shorter than the wave, or every read failed")
-        means.append(float(np.mean(y[sel])))
-    m = np.asarray(means)
-    if len(m) < 3:  # one cycle: one high, one low
-        steps = np.array([m[0] - m[1]])
-    else:
-        sign = np.where(np.arange(1, len(m) - 1) % 2 == 0, 1.0, -1.0)  # k even: a high
-        steps = sign * (m[1:-1] - 0.5 * (m[:-2] + m[2:]))
-    return Response(float(np.mean(steps)), float(np.std(steps)), len(steps))
