@@ -1,6 +1,8 @@
 """Find what the plant model is missing: detect, fit, hold out, accept only what holds up.
 
-The loop, per round:
+First the model's calibrated numbers are fitted within their stated tolerances
+(`leveler.analysis.recalibrate`): an in-tolerance offset is a calibration, not an effect.
+Then, per round:
 1. replay the log against the current model; the residual's noise spectrum is fitted on
    a training part (first two thirds of the usable log) and on the held-out rest;
 2. every effect not yet in the model reads its starting guesses off the residual
@@ -15,6 +17,7 @@ The loop, per round:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -32,8 +35,10 @@ from leveler.analysis.predict import (
     pendulum_filter,
     sensor_noise_m,
 )
+from leveler.analysis.recalibrate import Recalibration, recalibrate
 from leveler.analysis.whittle import ENBW_BINS, Whitener, deviance
-from leveler.sim.effects import EFFECTS, Effect, EffectsParams
+from leveler.sim.effects import EFFECTS, Effect, EffectsParams, SensorGainError
+from leveler.sim.params import PlantParams
 
 _MIN_NOISE_SHARE = 0.5
 BANDS_HZ: dict[str, tuple[float, float]] = {
@@ -81,6 +86,8 @@ class Diagnosis:
     candidates: list[Candidate] = field(default_factory=list)
     span_s: tuple[float, float] = (0.0, 0.0)
     wall_s: float = 0.0
+    params: PlantParams | None = None  # the recalibrated plant (effects aside)
+    recalibration: Recalibration | None = None
 
 
 def warmup_samples(meas: Measured, pred: Predictor) -> int:
@@ -207,6 +214,36 @@ def _stable(a: Effect, b: Effect) -> bool:
     return x * y > 0 and 0.5 <= abs(y / x) <= 2.0
 
 
+def _recalibrated(meas: Measured, plant: PlantParams, whole: slice, excited: bool
+                  ) -> tuple[Predictor, Recalibration | None, Found | None]:
+    """`plant` (nominal values, the effects found so far) recalibrated within its stated
+    tolerances: an in-tolerance offset is no missing effect. A sensor path beyond
+    PULL_LIMIT sigma is the sensor gain error family: returned as that effect, on the
+    nominal sensor path."""
+    pred = Predictor(plant, meas)
+    recal = recalibrate(meas, plant, make_whitener(meas, pred, whole), excited)
+    if recal is None:
+        return pred, None, None
+    params, gain = recal.params, None
+    if "sensor_path" in recal.disputed:
+        old = plant.effects.sensor_gain_error
+        g = (1 + recal.offset["sensor_path"]) * (1 + (old.gain_error if old else 0.0)) - 1
+        gain = Found(SensorGainError(gain_error=g),
+                     {"gain_error": recal.sigma_post["sensor_path"]}, recal.deviance)
+        params = dataclasses.replace(
+            params, pendulum=dataclasses.replace(params.pendulum,
+                                                 sensor_arm_m=plant.pendulum.sensor_arm_m),
+            effects=params.effects.with_effect(gain.effect))
+    return Predictor(params, meas), recal, gain
+
+
+def _with(found: list[Found], new: Found | None) -> list[Found]:
+    """`found` with `new` in it (replacing an earlier fit of the same effect)."""
+    if new is None:
+        return found
+    return [f for f in found if f.effect.name != new.effect.name] + [new]
+
+
 def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
     start_wall = time.perf_counter()
     pred = Predictor(meas.config.plant, meas)
@@ -215,10 +252,12 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
     split = skip + 2 * (n - skip) // 3
     train, test, whole = slice(skip, split), slice(split, n), slice(skip, n)
     gap_before = gap(meas, pred, whole)
-    found: list[Found] = []
+    actuator_excited = _actuator_excited(meas, pred, whole)
+    pred, recal, gain = _recalibrated(meas, meas.config.plant, whole, actuator_excited)
+    found = _with([], gain)
     tried: list[Candidate] = []
     temperature = meas.sig.temperature_k is not None
-    excited = temperature or _actuator_excited(meas, pred, whole)
+    excited = temperature or actuator_excited
     noise = sensor_noise_m(pred.params, meas.dt_s)
     while len(found) < max_effects:
         w_train = make_whitener(meas, pred, train)
@@ -240,6 +279,10 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
                 fits.append(f)
                 fits += [fit_effect(v, pred, w_train, meas) for v in f.effect.variants()]
             for f in fits:
+                if why := f.effect.degenerate(ev):
+                    tried.append(Candidate(cls.name, f.effect.values(), 0.0, 0.0, 0.0,
+                                           note=f"rejected: {why}"))
+                    continue
                 cost_test = w_test.cost(meas.y_m - pred.with_candidate(f.effect))
                 k = len(cls.free)
                 cand = Candidate(cls.name, f.effect.values(), deviance(cost0_train, f.cost),
@@ -282,10 +325,15 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
                                final.effect.difference(f.effect, k))
                  for k, v in final.sigma.items()}
         found.append(Found(final.effect, sigma, cand.deviance_test))
-        pred.rebase(pred.effects.with_effect(final.effect))
+        # The baseline again, with what was found: an effect not yet in the model biased it.
+        plant = dataclasses.replace(meas.config.plant,
+                                    effects=pred.effects.with_effect(final.effect))
+        pred, recal, gain = _recalibrated(meas, plant, whole, actuator_excited)
+        found = _with(found, gain)
     return Diagnosis(found, pred.effects, gap_before, gap(meas, pred, whole), tried,
                      (float(meas.t_s[skip]), float(meas.t_s[-1])),
-                     time.perf_counter() - start_wall)
+                     time.perf_counter() - start_wall,
+                     dataclasses.replace(pred.params, effects=EffectsParams()), recal)
 
 
 def residual(meas: Measured, pred: Predictor, span: slice) -> np.ndarray:

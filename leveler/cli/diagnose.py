@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import re
@@ -16,6 +17,7 @@ if TYPE_CHECKING:
     from leveler.analysis.diagnose import Diagnosis
     from leveler.analysis.predict import Measured
     from leveler.sim.effects import Effect
+    from leveler.sim.params import PlantParams
 
 _EFFECTS_HEADER = re.compile(r"^\s*\[plant\.effects(\.[A-Za-z0-9_]+)?\]\s*(#.*)?$")
 _ANY_HEADER = re.compile(r"^\s*\[")
@@ -58,9 +60,27 @@ def _toml_value(v: Any) -> str:
     return repr(v)
 
 
-def model_text(base_text: str, effects: list[Effect], source: str) -> str:
-    """The base config with its [plant.effects.*] tables replaced by the fitted ones: a
-    plain config that `leveler sim` and `leveler replay --model` read directly."""
+def recalibrated_values(nominal: PlantParams, fitted: PlantParams) -> dict[str, dict[str, float]]:
+    """The [plant.*] values recalibration changed, by section."""
+    out: dict[str, dict[str, float]] = {}
+    for section in ("pendulum", "piezo", "thermal"):
+        a, b = getattr(nominal, section), getattr(fitted, section)
+        changed = {f.name: getattr(b, f.name) for f in dataclasses.fields(b)
+                   if getattr(a, f.name) != getattr(b, f.name)}
+        if changed:
+            out[f"plant.{section}"] = changed
+    return out
+
+
+def model_text(base_text: str, effects: list[Effect], source: str,
+               recalibrated: dict[str, dict[str, float]] | None = None) -> str:
+    """The base config with the recalibrated values and its [plant.effects.*] tables
+    replaced by the fitted ones: a plain config that `leveler sim` and `leveler replay
+    --model` read directly."""
+    from leveler.daemon.persist import set_keys
+
+    for section, values in (recalibrated or {}).items():
+        base_text = set_keys(base_text, section, values)
     kept: list[str] = []
     skipping = False
     for line in base_text.splitlines(keepends=True):
@@ -109,6 +129,7 @@ def result_json(d: Diagnosis, meas: Measured, model_out: str | None) -> dict[str
                      "params": f.effect.values(),
                      "uncertainty": f.sigma, "deviance_held_out": f.deviance_test}
                     for f in d.effects],
+        "recalibration": None if d.recalibration is None else d.recalibration.as_dict(),
         "gap_before": _gap_dict(d.gap_before),
         "gap_after": _gap_dict(d.gap_after),
         "model_out": model_out,
@@ -123,10 +144,16 @@ def result_json(d: Diagnosis, meas: Measured, model_out: str | None) -> dict[str
 
 
 def summary(d: Diagnosis, model_out: str | None) -> str:
-    if not d.effects:
-        return ("no missing effect found: no candidate improved the held-out part of the log "
-                "beyond its complexity penalty; the model is left as it is.")
     lines = []
+    if d.recalibration is not None:
+        lines.append("recalibrated within the model's stated tolerances:")
+        lines += [f"  {line}" for line in d.recalibration.describe()]
+        lines += [f"  {name}: beyond its tolerance" for name in d.recalibration.disputed
+                  if name != "sensor_path"]
+    if not d.effects:
+        return "\n".join([*lines, (
+            "no missing effect found: no candidate improved the held-out part of the log "
+            "beyond its complexity penalty; the model is left as it is.")])
     for f in d.effects:
         sig = ", ".join(f"{k} ± {v:.2g}" for k, v in f.sigma.items())
         lines.append(f"missing effect: {f.effect.describe()} ({sig})")
@@ -153,7 +180,7 @@ def write_report(directory: Path, d: Diagnosis, meas: Measured, text: str,
 
     directory.mkdir(parents=True, exist_ok=True)
     before = Predictor(meas.config.plant, meas)
-    after = Predictor(meas.config.plant, meas)
+    after = Predictor(d.params or meas.config.plant, meas)
     after.rebase(d.model)
     start = int((d.span_s[0] - meas.t_s[0]) / meas.dt_s)
     span = slice(start, len(meas.y_m))
@@ -198,7 +225,7 @@ def write_report(directory: Path, d: Diagnosis, meas: Measured, text: str,
         f"| band | nominal model [nm] | fitted model [nm] |\n|---|---|---|\n"
         f"| all | {_nm(d.gap_before['rms_m'])} | {_nm(d.gap_after['rms_m'])} |\n{rows}\n\n"
         f"![residual ASD](residual_asd.png)\n\n![time series](timeseries.png)\n\n"
-        f"Fitted model: `{model_out}`\n" if model_out else "")
+        + (f"Fitted model: `{model_out}`\n" if model_out else ""))
 
 
 def _nm(v: float | None) -> str:
@@ -224,8 +251,9 @@ def run(args: argparse.Namespace) -> int:
                 args.model and out.resolve() == Path(args.model).resolve()):
             raise LogError(f"{out}: refusing to overwrite the log or the input model; "
                            "choose another --model-out")
+        recal = None if d.params is None else recalibrated_values(meas.config.plant, d.params)
         write_atomic(out, model_text(meas.model_text, [f.effect for f in d.effects],
-                                     f"from {Path(args.log).name}"), load_config)
+                                     f"from {Path(args.log).name}", recal), load_config)
         model_out = str(out)
     text = summary(d, model_out)
     if args.report:

@@ -119,6 +119,16 @@ class Effect:
         """Other forms worth fitting that a fitted one implies (other waveform shapes)."""
         return []
 
+    def degenerate(self, ev: Evidence) -> str:
+        """Why this fit is no evidence for its effect ("" if it is): a parameter pinned at
+        its bound means the data wanted more than the form allows, i.e. something else."""
+        for key in self.free:
+            lo, hi = self.bounds(key)
+            v, tol = float(getattr(self, key)), 1e-3 * self.scale(key)
+            if v <= lo + tol or v >= hi - tol:
+                return f"{key} = {v:.4g} sits at its bound"
+        return ""
+
 
 # -- tilt: extra platform tilt ---------------------------------------------------------------
 
@@ -383,6 +393,15 @@ class ActuatorHysteresis(Effect):
 
     def bounds(self, key: str) -> tuple[float, float]:
         return (1e-4, 1e3) if key == "width_v" else (-1.0, 1.0)
+
+    def degenerate(self, ev: Evidence) -> str:
+        """A play wider than the command's reversals never turns: a gain or a lag, not a
+        loop."""
+        spread = ev.command_spread_v()
+        if self.width_v >= spread:
+            return (f"play width {self.width_v:.3g} V is not below the command's spread "
+                    f"({spread:.3g} V): a gain or a lag, not hysteresis")
+        return Effect.degenerate(self, ev)
 
     def describe(self) -> str:
         return (f"actuator hysteresis (Prandtl-Ishlinskii), {abs(self.fraction) * 100:.3g}% "

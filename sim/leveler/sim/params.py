@@ -139,6 +139,34 @@ class SensorParams:
 
 
 @dataclass(frozen=True, slots=True)
+class UncertaintyParams:
+    """1-sigma calibration tolerances of the numbers above, as fractions of their values
+    (0.03 = 3 %; 0 = known exactly). `leveler diagnose` fits the log to the model within
+    them before it looks for a missing effect, so an in-tolerance offset is a calibration,
+    not a finding."""
+
+    piezo_gain_rel: float = non_negative(0.0)
+    support_spacing_rel: float = non_negative(0.0)
+    sensor_arm_rel: float = non_negative(0.0)
+    sensor_gain_rel: float = non_negative(0.0)
+    amplification_rel: float = non_negative(0.0)
+    natural_frequency_rel: float = non_negative(0.0)
+    q_rel: float = non_negative(0.0)
+    thermal_tilt_rel: float = non_negative(0.0)
+
+    @property
+    def sensor_path_rel(self) -> float:
+        """The reading per unit tilt: sensor arm x amplification x sensor gain."""
+        return math.sqrt(self.sensor_arm_rel**2 + self.amplification_rel**2
+                         + self.sensor_gain_rel**2)
+
+    @property
+    def actuator_path_rel(self) -> float:
+        """The tilt per piezo volt: piezo gain / support spacing."""
+        return math.hypot(self.piezo_gain_rel, self.support_spacing_rel)
+
+
+@dataclass(frozen=True, slots=True)
 class PlantParams:
     """The whole simulated stand."""
 
@@ -149,3 +177,4 @@ class PlantParams:
     piezo: PiezoParams = field(default_factory=PiezoParams)
     sensor: SensorParams = field(default_factory=SensorParams)
     effects: EffectsParams = field(default_factory=EffectsParams)
+    uncertainty: UncertaintyParams = field(default_factory=UncertaintyParams)

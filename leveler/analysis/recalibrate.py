@@ -1,0 +1,171 @@
+"""Baseline recalibration: fit the model's calibrated numbers to the log, within their
+stated tolerances, before any missing effect is looked for.
+
+A lab states its numbers with 1-sigma tolerances (`[plant.uncertainty]`); a healthy stand
+differs from its nominal model by offsets within them, and a detector that compares the
+log with the nominal model names those offsets as effects (a gain error of 3 % becomes a
+"hysteresis"). So the uncertain numbers are fitted first, as a maximum a posteriori
+estimate under Gaussian priors, on the whitened residual (`leveler.analysis.whittle`).
+Each is reported with its pull, offset / sigma: a pull beyond PULL_LIMIT says the log
+disputes the stated calibration.
+
+The knobs are the combinations a replay can tell apart: the sensor path (reading per unit
+tilt: arm x amplification x sensor gain), the actuator path (tilt per piezo volt: piezo
+gain / support spacing), the pendulum's resonance frequency and Q (at a fixed static
+amplification), and the thermal tilt coefficient when the temperature was logged.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from leveler.analysis.predict import Measured, Predictor
+from leveler.analysis.whittle import ENBW_BINS, Whitener
+from leveler.sim.params import PlantParams
+
+#: a pull beyond this many sigma is a calibration the log disputes
+PULL_LIMIT = 3.0
+#: a bin this far above the noise spectrum is a line (chance: once in 160,000 bins)
+LINE_Z = 12.0
+
+
+def _sensor(p: PlantParams, d: float) -> PlantParams:
+    pe = p.pendulum
+    return dataclasses.replace(p, pendulum=dataclasses.replace(
+        pe, sensor_arm_m=pe.sensor_arm_m * (1 + d)))
+
+
+def _actuator(p: PlantParams, d: float) -> PlantParams:
+    pz = p.piezo
+    return dataclasses.replace(p, piezo=dataclasses.replace(
+        pz, gain_m_per_v=pz.gain_m_per_v * (1 + d)))
+
+
+def _frequency(p: PlantParams, d: float) -> PlantParams:
+    """f0 * (1 + d) at the same static amplification and Q: the inertia changes, and the
+    damping with it."""
+    pe = p.pendulum
+    inertia = pe.inertia_kgm2 / (1 + d) ** 2
+    return dataclasses.replace(p, pendulum=dataclasses.replace(
+        pe, inertia_kgm2=inertia, damping_nms_per_rad=pe.damping_nms_per_rad / (1 + d)))
+
+
+def _q(p: PlantParams, d: float) -> PlantParams:
+    pe = p.pendulum
+    return dataclasses.replace(p, pendulum=dataclasses.replace(
+        pe, damping_nms_per_rad=pe.damping_nms_per_rad / (1 + d)))
+
+
+def _thermal(p: PlantParams, d: float) -> PlantParams:
+    th = p.thermal
+    return dataclasses.replace(p, thermal=dataclasses.replace(
+        th, tilt_per_kelvin_rad_per_k=th.tilt_per_kelvin_rad_per_k * (1 + d)))
+
+
+@dataclass(frozen=True)
+class Knob:
+    name: str
+    title: str
+    sigma: float  # relative 1-sigma
+    apply: Callable[[PlantParams, float], PlantParams]
+
+
+def knobs(params: PlantParams, temperature_logged: bool, excited: bool) -> list[Knob]:
+    """The uncertain numbers this model states, as knobs a replay can turn. The two path
+    gains only when something other than feedback moved the actuator (`excited`): in a
+    closed loop alone the voltage carries the disturbance it cancels, and a gain applied to
+    it shrinks that unpredicted disturbance with it, which fits better without being true."""
+    u = params.uncertainty
+    all_knobs = [
+        Knob("sensor_path", "sensor path (arm x amplification x gain)", u.sensor_path_rel,
+             _sensor),
+        Knob("actuator_path", "actuator path (piezo gain / support spacing)",
+             u.actuator_path_rel, _actuator),
+        Knob("natural_frequency", "pendulum resonance frequency", u.natural_frequency_rel,
+             _frequency),
+        Knob("q", "pendulum Q", u.q_rel, _q),
+        Knob("thermal_tilt", "thermal tilt coefficient",
+             u.thermal_tilt_rel if temperature_logged else 0.0, _thermal),
+    ]
+    paths = ("sensor_path", "actuator_path")
+    return [k for k in all_knobs if k.sigma > 0 and (excited or k.name not in paths)]
+
+
+@dataclass
+class Recalibration:
+    """The recalibrated model and what moved: relative offsets, their prior and posterior
+    1-sigma, and pulls (offset / prior sigma)."""
+
+    params: PlantParams
+    knobs: list[Knob]
+    offset: dict[str, float]
+    sigma_post: dict[str, float]
+    deviance: float  # twice the log-likelihood gain over the nominal model
+
+    def pull(self, name: str) -> float:
+        k = next(k for k in self.knobs if k.name == name)
+        return self.offset[name] / k.sigma
+
+    @property
+    def disputed(self) -> list[str]:
+        return [k.name for k in self.knobs if abs(self.pull(k.name)) > PULL_LIMIT]
+
+    def as_dict(self) -> dict[str, dict[str, float]]:
+        return {k.name: {"offset_rel": self.offset[k.name], "sigma_rel": k.sigma,
+                         "posterior_sigma_rel": self.sigma_post[k.name],
+                         "pull": self.pull(k.name)} for k in self.knobs}
+
+    def describe(self) -> list[str]:
+        return [f"{k.title}: {self.offset[k.name] * 100:+.2f} % "
+                f"(+-{self.sigma_post[k.name] * 100:.2g} %; tolerance {k.sigma * 100:.3g} %, "
+                f"pull {self.pull(k.name):+.1f} sigma)" for k in self.knobs]
+
+
+def apply(params: PlantParams, ks: list[Knob], x: np.ndarray) -> PlantParams:
+    for k, d in zip(ks, x, strict=True):
+        params = k.apply(params, float(d))
+    return params
+
+
+def recalibrate(meas: Measured, params: PlantParams, w: Whitener,
+                excited: bool) -> Recalibration | None:
+    """MAP of the model's uncertain numbers on the span `w` whitens (its noise spectrum
+    fitted to the nominal residual), lines left out; None if the model states no tolerance
+    (nothing to recalibrate)."""
+    ks = knobs(params, meas.sig.temperature_k is not None, excited)
+    if not ks:
+        return None
+    sigma = np.array([k.sigma for k in ks])
+    root = math.sqrt(2.0 / ENBW_BINS)  # whitened cost -> -2 log-likelihood
+    base = Predictor(params, meas).base.y_m
+    # Bins where the nominal residual stands far above its noise spectrum are lines: an
+    # unmodelled periodic disturbance that the loop cancelled sits in the residual scaled
+    # by the sensor path, and would pull that path towards zero. Lines are the candidates'
+    # business; the calibration is told by the broadband response.
+    quiet = np.tile(w.zscores(meas.y_m - base) < LINE_Z, 2)
+
+    def residuals(z: np.ndarray) -> np.ndarray:
+        pred = Predictor(apply(params, ks, z * sigma), meas)
+        return np.concatenate([root * w.whiten(meas.y_m - pred.base.y_m)[quiet], z])
+
+    # Relative offsets above -90 %: a model cannot be recalibrated to nothing.
+    res = least_squares(residuals, np.zeros(len(ks)), diff_step=1e-3,
+                        bounds=(-0.9 / sigma, np.full(len(ks), np.inf)),
+                        max_nfev=30 * (len(ks) + 1))
+    r0 = residuals(np.zeros(len(ks)))
+    deviance = float(r0 @ r0 - res.fun @ res.fun)
+    try:
+        cov = np.linalg.inv(res.jac.T @ res.jac)
+        post = np.sqrt(np.abs(np.diag(cov))) * sigma
+    except np.linalg.LinAlgError:
+        post = np.full(len(ks), math.inf)
+    x = res.x * sigma
+    return Recalibration(apply(params, ks, x), ks,
+                         {k.name: float(v) for k, v in zip(ks, x, strict=True)},
+                         {k.name: float(v) for k, v in zip(ks, post, strict=True)}, deviance)

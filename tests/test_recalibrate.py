@@ -1,0 +1,142 @@
+"""Baseline recalibration (issue 17, parts 1-2): an in-tolerance calibration offset is a
+recalibration with its pull, not a missing effect; beyond tolerance the sensor path is the
+sensor gain error; degenerate fits are no evidence."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import pytest
+from conftest import REPO
+
+from leveler.analysis.diagnose import diagnose
+from leveler.analysis.predict import load_measured
+from leveler.analysis.synthetic import make_measured
+from leveler.cli.main import main
+from leveler.settings import Config, load_config
+from leveler.sim.effects import ActuatorHysteresis, SensorGainError
+from leveler.sim.params import PlantParams
+from leveler.typed_config import ConfigError, build
+
+# The truth's offsets: each within about 1.5 sigma of config/sim.toml's tolerances.
+PIEZO, ARM, F0 = 1.045, 0.965, 1.02
+
+
+def _offset(cfg: Config) -> Config:
+    p = cfg.plant
+    pe = p.pendulum
+    return dataclasses.replace(cfg, plant=dataclasses.replace(
+        p, piezo=dataclasses.replace(p.piezo, gain_m_per_v=p.piezo.gain_m_per_v * PIEZO),
+        pendulum=dataclasses.replace(pe, sensor_arm_m=pe.sensor_arm_m * ARM,
+                                     inertia_kgm2=pe.inertia_kgm2 / F0**2)))
+
+
+@pytest.fixture(scope="module")
+def offset_logs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """Modulated 4 h logs of a stand with in-tolerance offsets, with and without a sensor
+    gain error far beyond its tolerance; each log carries the nominal model."""
+    cfg, text = load_config(REPO / "config" / "sim.toml")
+    out = {}
+    for name, fx in (("offsets", None), ("gain", SensorGainError(gain_error=0.25))):
+        path = tmp_path_factory.mktemp(name) / f"{name}.mcap"
+        make_measured(path, _offset(cfg), text, fx, duration_s=4 * 3600, seed=11,
+                      dither_v=4.0, dither_period_s=120.0)
+        out[name] = path
+    return out
+
+
+def test_in_tolerance_offsets_are_a_recalibration_not_a_missing_effect(
+        offset_logs: dict[str, Path]) -> None:
+    d = diagnose(load_measured(offset_logs["offsets"]))
+    assert d.effects == [], [f.effect for f in d.effects]  # it was "actuator hysteresis"
+    assert d.recalibration is not None
+    off = d.recalibration.offset
+    # The sensor and actuator paths trade off against each other a little; their product
+    # (what the modulation shows) is pinned, and so is the resonance.
+    assert abs((1 + off["sensor_path"]) * (1 + off["actuator_path"]) - ARM * PIEZO) < 0.01
+    assert off["sensor_path"] < 0 < off["actuator_path"]
+    assert abs(off["natural_frequency"] - (F0 - 1)) < 0.002
+    assert all(abs(d.recalibration.pull(k.name)) < 2 for k in d.recalibration.knobs)
+    assert d.recalibration.disputed == []
+
+
+def test_the_report_gives_each_recalibrated_value_with_its_pull(
+        offset_logs: dict[str, Path], capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["diagnose", str(offset_logs["offsets"])]) == 0
+    text = capsys.readouterr().out
+    assert "recalibrated within the model's stated tolerances:" in text
+    assert "pendulum resonance frequency: +2.0" in text and "pull +1.0 sigma" in text
+    assert "no missing effect found" in text
+    assert not offset_logs["offsets"].with_suffix(".fitted.toml").exists()
+    report = offset_logs["offsets"].parent / "report"
+    assert main(["diagnose", str(offset_logs["offsets"]), "--json", "--report",
+                 str(report)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    summary_md = (report / "summary.md").read_text()  # was empty when nothing was found
+    assert "no missing effect found" in summary_md and "pull" in summary_md
+    assert set(out["recalibration"]) == {"sensor_path", "actuator_path", "natural_frequency",
+                                         "q", "thermal_tilt"}
+    assert out["recalibration"]["natural_frequency"]["sigma_rel"] == 0.02
+
+
+def test_a_sensor_path_far_beyond_its_tolerance_is_the_sensor_gain_error(
+        offset_logs: dict[str, Path], tmp_path: Path) -> None:
+    model_out = tmp_path / "fitted.toml"
+    assert main(["diagnose", str(offset_logs["gain"]), "--model-out", str(model_out)]) == 0
+    fitted, _ = load_config(model_out)
+    g = fitted.plant.effects.sensor_gain_error
+    assert g is not None and g.gain_error > 0.15
+    nominal, _ = load_config(REPO / "config" / "sim.toml")
+    # The reading's whole scale: the effect times what is left recalibrated in tolerance
+    # (written in place, like the resonance), against the truth's 1.25 x the arm's 0.965.
+    arm = fitted.plant.pendulum.sensor_arm_m / nominal.plant.pendulum.sensor_arm_m
+    assert abs(arm - 1) < 0.02
+    assert abs((1 + g.gain_error) * arm - 1.25 * ARM) < 0.02
+    assert fitted.plant.pendulum.inertia_kgm2 != nominal.plant.pendulum.inertia_kgm2
+
+
+def test_a_model_that_states_no_tolerance_is_not_recalibrated(tmp_path: Path) -> None:
+    cfg, text = load_config(REPO / "config" / "sim.toml")
+    bare = dataclasses.replace(cfg, plant=dataclasses.replace(
+        cfg.plant, uncertainty=type(cfg.plant.uncertainty)()))
+    log = tmp_path / "bare.mcap"
+    cut = text[:text.index("[plant.uncertainty]")]
+    make_measured(log, bare, cut, None, duration_s=3600, seed=2)
+    d = diagnose(load_measured(log))
+    assert d.recalibration is None and d.effects == []
+
+
+def test_tolerances_are_checked_like_every_other_key() -> None:
+    with pytest.raises(ConfigError, match=r"plant\.uncertainty\.piezo_gain_rel"):
+        build(Config, {"plant": {"uncertainty": {"piezo_gain_rel": -0.01}}})
+    with pytest.raises(ConfigError, match=r"plant\.uncertainty\.sensor_gain"):
+        build(Config, {"plant": {"uncertainty": {"sensor_gain": 0.01}}})  # unit suffix missing
+    u = build(PlantParams, {"uncertainty": {"sensor_arm_rel": 0.03, "sensor_gain_rel": 0.04,
+                                            "piezo_gain_rel": 0.03,
+                                            "support_spacing_rel": 0.04}}).uncertainty
+    assert u.sensor_path_rel == pytest.approx(0.05) and u.actuator_path_rel == pytest.approx(0.05)
+
+
+class _Spread:
+    """What a degenerate-fit check reads: how far the command moved."""
+
+    def __init__(self, spread_v: float) -> None:
+        self.spread_v = spread_v
+
+    def command_spread_v(self) -> float:
+        return self.spread_v
+
+
+def test_degenerate_fits_are_no_evidence() -> None:
+    """A play wider than the command's reversals never turns (a gain or a lag); a fit
+    pinned at a bound wanted something the form does not have."""
+    ev = _Spread(8.0)
+    assert ActuatorHysteresis(width_v=0.5, fraction=0.3).degenerate(ev) == ""  # type: ignore[arg-type]
+    assert "not below the command's spread" in ActuatorHysteresis(
+        width_v=16.5, fraction=0.3).degenerate(ev)  # type: ignore[arg-type]
+    assert "fraction = 1 sits at its bound" in ActuatorHysteresis(
+        width_v=0.5, fraction=1.0).degenerate(ev)  # type: ignore[arg-type]
+    assert "sits at its bound" in SensorGainError(gain_error=-0.5).degenerate(ev)  # type: ignore[arg-type]
+    assert SensorGainError(gain_error=0.2).degenerate(ev) == ""  # type: ignore[arg-type]
