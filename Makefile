@@ -49,6 +49,13 @@ bench: $(BENCH_STAMP)
 bench-quick: $(BENCH_STAMP)
 	$(BIN)/python bench/run.py --quick $(ARGS)
 
+# `leveler diagnose` scored on logs of the independent generator (bench/independent/):
+# confusion matrix, false alarms on nulls, per-severity hits; JSON to /tmp/diagnose-score.json.
+# Hours on 2 cores; ARGS="--quick" takes 10-20 min. ARGS="--untouched": the report-only seeds.
+.PHONY: bench-diagnose
+bench-diagnose: $(STAMP)
+	$(BIN)/python bench/diagnose_score.py $(ARGS)
+
 # 100 Hz over Modbus TCP on loopback for 10 minutes, after cyclictest at 100 Hz (the OS limit)
 # and the sim backend (the baseline), each as long: 30 min.
 bench-modbus: $(STAMP)
