@@ -140,3 +140,27 @@ def test_degenerate_fits_are_no_evidence() -> None:
         width_v=0.5, fraction=1.0).degenerate(ev)  # type: ignore[arg-type]
     assert "sits at its bound" in SensorGainError(gain_error=-0.5).degenerate(ev)  # type: ignore[arg-type]
     assert SensorGainError(gain_error=0.2).degenerate(ev) == ""  # type: ignore[arg-type]
+
+
+def test_an_open_loop_modulation_is_all_excitation() -> None:
+    """While the loop is open every move of the voltage is excitation (it used to count only
+    the sample-to-sample increments, so a modulated open-loop part looked unexcited)."""
+    import numpy as np
+
+    from leveler.analysis.predict import Measured, excitation_v
+    from leveler.sim.effects import Signals
+
+    cfg, _ = load_config(REPO / "config" / "sim.toml")
+    n = 2000
+    t = np.arange(n) * 0.1
+    square = 75.0 + 5.0 * np.sign(np.sin(2 * np.pi * t / 60.0) + 1e-9)
+    engaged = t >= 150.0
+    u = np.where(engaged, square[1499], square)
+    c = cfg.controller
+    meas = Measured("x", Signals(t, 0.1), u, np.zeros(n), cfg, "", "", 0,
+                    (c.kp_v_per_m, c.ki_v_per_m_s, c.kd_v_s_per_m), c, engaged)
+    exc = excitation_v(meas)
+    assert exc is not None
+    assert np.ptp(exc[:1500]) == pytest.approx(10.0)  # the whole swing, not 10 V spikes
+    assert np.count_nonzero(np.abs(exc[:1500]) > 1.0) > 500  # every low half, not 5 edges
+    assert np.max(np.abs(exc[1500:])) < 1e-9  # closed, readings at 0: the PID holds

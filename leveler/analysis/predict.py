@@ -135,13 +135,17 @@ def excitation_v(meas: Measured) -> np.ndarray | None:
     y, u, on = meas.y_m.tolist(), meas.u_v.tolist(), meas.engaged.tolist()
     out = np.empty(len(u))
     held, was_on, dt = u[0], False, meas.dt_s
+    opened = u[0]  # the voltage when the loop last opened
     for n, (yn, un, engaged) in enumerate(zip(y, u, on, strict=True)):
         if engaged:
             if not was_on:
                 pid.engage(yn, held)
             held = pid.update(yn, dt).command_v
-        out[n] = un - held
-        if not engaged:
+            out[n] = un - held
+        else:  # open loop: every move of the voltage is excitation (a modulation)
+            if was_on:
+                opened = un
+            out[n] = un - opened
             held = un
         was_on = engaged
     return out
@@ -209,6 +213,10 @@ class Predictor:
                 temp = lfilter([1 - a], [1, -a], temp, zi=np.array([a * temp[0]]))[0]
             tilt = tilt + th.tilt_per_kelvin_rad_per_k * (temp - th.mean_k)
         return tilt
+
+    def actuator_tilt(self, v: np.ndarray) -> np.ndarray:
+        """Platform tilt [rad] that a change of the piezo voltage by `v` makes."""
+        return self._kv * v
 
     def pend(self, phi: np.ndarray) -> np.ndarray:
         """Sensor displacement [m] for platform tilt phi, starting settled at phi[0]."""

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from leveler.analysis.predict import Measured, Predictor
+from leveler.analysis.predict import Measured, Predictor, excitation_v
 from leveler.analysis.whittle import ENBW_BINS, Whitener
 from leveler.sim.params import PlantParams
 
@@ -143,12 +143,24 @@ def recalibrate(meas: Measured, params: PlantParams, w: Whitener,
         return None
     sigma = np.array([k.sigma for k in ks])
     root = math.sqrt(2.0 / ENBW_BINS)  # whitened cost -> -2 log-likelihood
-    base = Predictor(params, meas).base.y_m
+    nominal = Predictor(params, meas)
+    base = nominal.base.y_m
     # Bins where the nominal residual stands far above its noise spectrum are lines: an
     # unmodelled periodic disturbance that the loop cancelled sits in the residual scaled
     # by the sensor path, and would pull that path towards zero. Lines are the candidates'
-    # business; the calibration is told by the broadband response.
-    quiet = np.tile(w.zscores(meas.y_m - base) < LINE_Z, 2)
+    # business, except those of the excitation (a square or triangle modulation is a comb
+    # of lines too): where a 1-sigma knob moves the response to it, a bin tells the knob.
+    exc = excitation_v(meas)
+    told = np.zeros(len(w.f_hz), dtype=bool)
+    if exc is not None:
+        def response(p: Predictor) -> np.ndarray:
+            return p.pend(p.actuator_tilt(exc))
+
+        r0 = response(nominal)
+        for i in range(len(ks)):
+            one = np.where(np.arange(len(ks)) == i, sigma, 0.0)
+            told |= w.zscores(response(Predictor(apply(params, ks, one), meas)) - r0) > 1.0
+    quiet = np.tile((w.zscores(meas.y_m - base) < LINE_Z) | told, 2)
 
     def residuals(z: np.ndarray) -> np.ndarray:
         pred = Predictor(apply(params, ks, z * sigma), meas)
