@@ -9,7 +9,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -114,3 +114,26 @@ def start_daemon(tmp_path: Path) -> Iterator:  # type: ignore[type-arg]
             d.proc.kill()
             d.proc.communicate(timeout=10)
     shutil.rmtree(short, ignore_errors=True)
+
+
+def as_user(uid: int, fn: Callable[[], object], gid: int | None = None) -> str:
+    """fn() in a forked child that dropped to uid (and gid, default uid; no exec: the venv
+    may be unreadable to that user); returns what fn returned, or the exception's text."""
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # child
+        os.close(r)
+        try:
+            os.setgroups([])
+            os.setgid(uid if gid is None else gid)
+            os.setuid(uid)
+            out = str(fn())
+        except BaseException as exc:  # report everything to the parent
+            out = f"{type(exc).__name__}: {exc}"
+        os.write(w, out.encode())
+        os._exit(0)
+    os.close(w)
+    with os.fdopen(r) as fh:
+        out = fh.read()
+    os.waitpid(pid, 0)
+    return out

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import as_user
 
 from leveler.log.reader import read_log
 
@@ -53,29 +54,6 @@ def events(d, kind: str) -> list[dict]:  # type: ignore[no-untyped-def,type-arg]
     out = []
     for f in sorted(d.logs.glob("*.mcap")):
         out += [e for e in read_log(f).events if e["kind"] == kind]
-    return out
-
-
-def as_user(uid: int, fn: Callable[[], object], gid: int | None = None) -> str:
-    """fn() in a forked child that dropped to uid (and gid, default uid); returns what fn
-    returned, or the exception's text."""
-    r, w = os.pipe()
-    pid = os.fork()
-    if pid == 0:  # child
-        os.close(r)
-        try:
-            os.setgroups([])
-            os.setgid(uid if gid is None else gid)
-            os.setuid(uid)
-            out = str(fn())
-        except BaseException as exc:  # report everything to the parent
-            out = f"{type(exc).__name__}: {exc}"
-        os.write(w, out.encode())
-        os._exit(0)
-    os.close(w)
-    with os.fdopen(r) as fh:
-        out = fh.read()
-    os.waitpid(pid, 0)
     return out
 
 

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import as_user
 
 from leveler.log.reader import read_log
 from leveler.settings import load_config
@@ -238,29 +239,6 @@ def test_notify_ready_then_watchdog_which_stops_when_the_loop_stalls(
     assert np.median(gaps) == pytest.approx(0.2, abs=0.06)  # WATCHDOG_USEC / 2
     assert gaps.max() > 2.5  # silent while the loop hung for 3 s
     assert any(m.startswith(b"STATUS=t=") for _, m in msgs)
-
-
-def as_user(uid: int, fn) -> str:  # type: ignore[no-untyped-def]
-    """Run fn() in a forked child that has dropped to uid (no exec: the venv may be
-    unreadable to that user); returns what fn returned, or the exception's text."""
-    r, w = os.pipe()
-    pid = os.fork()
-    if pid == 0:  # child
-        os.close(r)
-        try:
-            os.setgroups([])
-            os.setgid(uid)
-            os.setuid(uid)
-            out = str(fn())
-        except BaseException as exc:  # report everything to the parent
-            out = f"{type(exc).__name__}: {exc}"
-        os.write(w, out.encode())
-        os._exit(0)
-    os.close(w)
-    with os.fdopen(r) as fh:
-        out = fh.read()
-    os.waitpid(pid, 0)
-    return out
 
 
 @pytest.mark.skipif(os.geteuid() != 0, reason="needs root to act as another user (nobody)")
