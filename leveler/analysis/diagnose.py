@@ -37,7 +37,7 @@ from leveler.analysis.predict import (
 )
 from leveler.analysis.recalibrate import Recalibration, recalibrate
 from leveler.analysis.whittle import ENBW_BINS, Whitener, deviance
-from leveler.sim.effects import EFFECTS, Effect, EffectsParams, SensorGainError
+from leveler.sim.effects import EFFECTS, Effect, EffectsParams
 from leveler.sim.params import PlantParams
 
 _MIN_NOISE_SHARE = 0.5
@@ -215,33 +215,20 @@ def _stable(a: Effect, b: Effect) -> bool:
 
 
 def _recalibrated(meas: Measured, plant: PlantParams, whole: slice, excited: bool
-                  ) -> tuple[Predictor, Recalibration | None, Found | None]:
+                  ) -> tuple[Predictor, Recalibration | None]:
     """`plant` (nominal values, the effects found so far) recalibrated within its stated
-    tolerances: an in-tolerance offset is no missing effect. A sensor path beyond
-    PULL_LIMIT sigma is the sensor gain error family: returned as that effect, on the
-    nominal sensor path."""
+    tolerances: an in-tolerance offset is no missing effect. A knob the fit puts beyond
+    PULL_LIMIT sigma is held at nominal and the rest refitted, until none is: what pulled
+    it (a sensor gain error, or an effect that mimics one, such as a coarse converter) is
+    then for the candidates to compete for on held-out data, not taken for granted."""
     pred = Predictor(plant, meas)
-    recal = recalibrate(meas, plant, make_whitener(meas, pred, whole), excited)
+    w = make_whitener(meas, pred, whole)
+    recal = recalibrate(meas, plant, w, excited)
+    while recal is not None and recal.disputed:  # the next knob may take up what was held
+        recal = recalibrate(meas, plant, w, excited, omit=recal.held + tuple(recal.disputed))
     if recal is None:
-        return pred, None, None
-    params, gain = recal.params, None
-    if "sensor_path" in recal.disputed:
-        old = plant.effects.sensor_gain_error
-        g = (1 + recal.offset["sensor_path"]) * (1 + (old.gain_error if old else 0.0)) - 1
-        gain = Found(SensorGainError(gain_error=g),
-                     {"gain_error": recal.sigma_post["sensor_path"]}, recal.deviance)
-        params = dataclasses.replace(
-            params, pendulum=dataclasses.replace(params.pendulum,
-                                                 sensor_arm_m=plant.pendulum.sensor_arm_m),
-            effects=params.effects.with_effect(gain.effect))
-    return Predictor(params, meas), recal, gain
-
-
-def _with(found: list[Found], new: Found | None) -> list[Found]:
-    """`found` with `new` in it (replacing an earlier fit of the same effect)."""
-    if new is None:
-        return found
-    return [f for f in found if f.effect.name != new.effect.name] + [new]
+        return pred, None
+    return Predictor(recal.params, meas), recal
 
 
 def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
@@ -253,8 +240,8 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
     train, test, whole = slice(skip, split), slice(split, n), slice(skip, n)
     gap_before = gap(meas, pred, whole)
     actuator_excited = _actuator_excited(meas, pred, whole)
-    pred, recal, gain = _recalibrated(meas, meas.config.plant, whole, actuator_excited)
-    found = _with([], gain)
+    pred, recal = _recalibrated(meas, meas.config.plant, whole, actuator_excited)
+    found: list[Found] = []
     tried: list[Candidate] = []
     temperature = meas.sig.temperature_k is not None
     excited = temperature or actuator_excited
@@ -328,8 +315,7 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
         # The baseline again, with what was found: an effect not yet in the model biased it.
         plant = dataclasses.replace(meas.config.plant,
                                     effects=pred.effects.with_effect(final.effect))
-        pred, recal, gain = _recalibrated(meas, plant, whole, actuator_excited)
-        found = _with(found, gain)
+        pred, recal = _recalibrated(meas, plant, whole, actuator_excited)
     return Diagnosis(found, pred.effects, gap_before, gap(meas, pred, whole), tried,
                      (float(meas.t_s[skip]), float(meas.t_s[-1])),
                      time.perf_counter() - start_wall,

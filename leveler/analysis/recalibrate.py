@@ -7,7 +7,8 @@ log with the nominal model names those offsets as effects (a gain error of 3 % b
 "hysteresis"). So the uncertain numbers are fitted first, as a maximum a posteriori
 estimate under Gaussian priors, on the whitened residual (`leveler.analysis.whittle`).
 Each is reported with its pull, offset / sigma: a pull beyond PULL_LIMIT says the log
-disputes the stated calibration.
+disputes the stated calibration; `leveler.analysis.diagnose` then holds that number at
+nominal and lets the effect families compete for what pulled it.
 
 The knobs are the combinations a replay can tell apart: the sensor path (reading per unit
 tilt: arm x amplification x sensor gain), the actuator path (tilt per piezo volt: piezo
@@ -76,25 +77,34 @@ class Knob:
     apply: Callable[[PlantParams, float], PlantParams]
 
 
-def knobs(params: PlantParams, temperature_logged: bool, excited: bool) -> list[Knob]:
+TITLES = {
+    "sensor_path": "sensor path (arm x amplification x gain)",
+    "actuator_path": "actuator path (piezo gain / support spacing)",
+    "natural_frequency": "pendulum resonance frequency",
+    "q": "pendulum Q",
+    "thermal_tilt": "thermal tilt coefficient",
+}
+
+
+def knobs(params: PlantParams, temperature_logged: bool, excited: bool,
+          omit: tuple[str, ...] = ()) -> list[Knob]:
     """The uncertain numbers this model states, as knobs a replay can turn. The two path
     gains only when something other than feedback moved the actuator (`excited`): in a
     closed loop alone the voltage carries the disturbance it cancels, and a gain applied to
     it shrinks that unpredicted disturbance with it, which fits better without being true."""
     u = params.uncertainty
     all_knobs = [
-        Knob("sensor_path", "sensor path (arm x amplification x gain)", u.sensor_path_rel,
-             _sensor),
-        Knob("actuator_path", "actuator path (piezo gain / support spacing)",
-             u.actuator_path_rel, _actuator),
-        Knob("natural_frequency", "pendulum resonance frequency", u.natural_frequency_rel,
+        Knob("sensor_path", TITLES["sensor_path"], u.sensor_path_rel, _sensor),
+        Knob("actuator_path", TITLES["actuator_path"], u.actuator_path_rel, _actuator),
+        Knob("natural_frequency", TITLES["natural_frequency"], u.natural_frequency_rel,
              _frequency),
-        Knob("q", "pendulum Q", u.q_rel, _q),
-        Knob("thermal_tilt", "thermal tilt coefficient",
+        Knob("q", TITLES["q"], u.q_rel, _q),
+        Knob("thermal_tilt", TITLES["thermal_tilt"],
              u.thermal_tilt_rel if temperature_logged else 0.0, _thermal),
     ]
     paths = ("sensor_path", "actuator_path")
-    return [k for k in all_knobs if k.sigma > 0 and (excited or k.name not in paths)]
+    return [k for k in all_knobs if k.sigma > 0 and (excited or k.name not in paths)
+            and k.name not in omit]
 
 
 @dataclass
@@ -107,6 +117,7 @@ class Recalibration:
     offset: dict[str, float]
     sigma_post: dict[str, float]
     deviance: float  # twice the log-likelihood gain over the nominal model
+    held: tuple[str, ...] = ()  # knobs a first fit put beyond PULL_LIMIT, now at nominal
 
     def pull(self, name: str) -> float:
         k = next(k for k in self.knobs if k.name == name)
@@ -124,7 +135,9 @@ class Recalibration:
     def describe(self) -> list[str]:
         return [f"{k.title}: {self.offset[k.name] * 100:+.2f} % "
                 f"(+-{self.sigma_post[k.name] * 100:.2g} %; tolerance {k.sigma * 100:.3g} %, "
-                f"pull {self.pull(k.name):+.1f} sigma)" for k in self.knobs]
+                f"pull {self.pull(k.name):+.1f} sigma)" for k in self.knobs] + [
+            f"{TITLES[name]}: beyond its tolerance, held at nominal and left to the effect "
+            "candidates" for name in self.held]
 
 
 def apply(params: PlantParams, ks: list[Knob], x: np.ndarray) -> PlantParams:
@@ -134,11 +147,11 @@ def apply(params: PlantParams, ks: list[Knob], x: np.ndarray) -> PlantParams:
 
 
 def recalibrate(meas: Measured, params: PlantParams, w: Whitener,
-                excited: bool) -> Recalibration | None:
+                excited: bool, omit: tuple[str, ...] = ()) -> Recalibration | None:
     """MAP of the model's uncertain numbers on the span `w` whitens (its noise spectrum
-    fitted to the nominal residual), lines left out; None if the model states no tolerance
-    (nothing to recalibrate)."""
-    ks = knobs(params, meas.sig.temperature_k is not None, excited)
+    fitted to the nominal residual), lines left out, the knobs in `omit` held at nominal;
+    None if the model states no tolerance (nothing to recalibrate)."""
+    ks = knobs(params, meas.sig.temperature_k is not None, excited, omit)
     if not ks:
         return None
     sigma = np.array([k.sigma for k in ks])
@@ -180,4 +193,5 @@ def recalibrate(meas: Measured, params: PlantParams, w: Whitener,
     x = res.x * sigma
     return Recalibration(apply(params, ks, x), ks,
                          {k.name: float(v) for k, v in zip(ks, x, strict=True)},
-                         {k.name: float(v) for k, v in zip(ks, post, strict=True)}, deviance)
+                         {k.name: float(v) for k, v in zip(ks, post, strict=True)}, deviance,
+                         omit)

@@ -130,6 +130,7 @@ def result_json(d: Diagnosis, meas: Measured, model_out: str | None) -> dict[str
                      "uncertainty": f.sigma, "deviance_held_out": f.deviance_test}
                     for f in d.effects],
         "recalibration": None if d.recalibration is None else d.recalibration.as_dict(),
+        "recalibration_held": [] if d.recalibration is None else list(d.recalibration.held),
         "gap_before": _gap_dict(d.gap_before),
         "gap_after": _gap_dict(d.gap_after),
         "model_out": model_out,
@@ -148,8 +149,6 @@ def summary(d: Diagnosis, model_out: str | None) -> str:
     if d.recalibration is not None:
         lines.append("recalibrated within the model's stated tolerances:")
         lines += [f"  {line}" for line in d.recalibration.describe()]
-        lines += [f"  {name}: beyond its tolerance" for name in d.recalibration.disputed
-                  if name != "sensor_path"]
     if not d.effects:
         return "\n".join([*lines, (
             "no missing effect found: no candidate improved the held-out part of the log "
