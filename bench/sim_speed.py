@@ -102,11 +102,12 @@ def python_control_loop(cfg: Config) -> ct.InterconnectedSystem:
         return (mgl * math.sin(th + phi) - kf * th - c * om) / j
 
     def plant_update(t: float, x: np.ndarray, u: np.ndarray, p: dict) -> list[float]:
-        th, om, v = x
+        th, om, v, phi_before = x
         target = min(max(u[0], pz.min_v), pz.max_v)
         dv = min(max(target - v, -max_dv), max_dv)
         v = v + dv
         phi = tilt_per_v * (v - pz.ref_v) + u[1]
+        th, om = th - (phi - phi_before), om + c / j * (phi - phi_before)  # J phi''
         for _ in range(4):
             k1t, k1o = om, acc(th, om, phi)
             k2t, k2o = om + 0.5 * h * k1o, acc(th + 0.5 * h * k1t, om + 0.5 * h * k1o, phi)
@@ -114,7 +115,7 @@ def python_control_loop(cfg: Config) -> ct.InterconnectedSystem:
             k4t, k4o = om + h * k3o, acc(th + h * k3t, om + h * k3o, phi)
             th += h / 6.0 * (k1t + 2 * k2t + 2 * k3t + k4t)
             om += h / 6.0 * (k1o + 2 * k2o + 2 * k3o + k4o)
-        return [th, om, v]
+        return [th, om, v, phi]
 
     def plant_output(t: float, x: np.ndarray, u: np.ndarray, p: dict) -> list[float]:
         sensed = arm * x[0] + u[2]
@@ -169,7 +170,7 @@ def python_control_loop(cfg: Config) -> ct.InterconnectedSystem:
         return [law(x, u[0])[3]]
 
     plant = ct.nlsys(plant_update, plant_output, inputs=["cmd", "tilt", "noise"],
-                     outputs=["y"], states=["theta", "omega", "v"], dt=dt, name="plant")
+                     outputs=["y"], states=["theta", "omega", "v", "phi"], dt=dt, name="plant")
     pid = ct.nlsys(pid_update, pid_output, inputs=["y"], outputs=["cmd"],
                    states=["i", "last", "prev", "df", "sp", "started"], dt=dt, name="pid")
     return ct.interconnect([plant, pid], inputs=["tilt", "noise"], outputs=["y", "cmd"])
@@ -180,9 +181,10 @@ def python_control_steps(cfg: Config, n: int) -> tuple[float, np.ndarray, np.nda
     dt = 1.0 / cfg.loop.rate_hz
     loop = python_control_loop(cfg)
     tilt, noise = disturbance_inputs(cfg.plant, dt, n)
-    theta0 = Plant(cfg.plant, dt, seed=1).pendulum.theta  # the same settled start
+    settled = Plant(cfg.plant, dt, seed=1)  # the same settled start
+    theta0, phi0 = settled.pendulum.theta, settled.tilt_rad()
     v0 = cfg.actuator.safe_v  # the PID starts (bumplessly) from the held voltage
-    x0 = [theta0, 0.0, cfg.plant.piezo.ref_v, 0.0, v0, 0.0, 0.0,
+    x0 = [theta0, 0.0, cfg.plant.piezo.ref_v, phi0, 0.0, v0, 0.0, 0.0,
           cfg.controller.pid_config().setpoint_m, 0.0]
     t = np.arange(n) * dt
     start = time.perf_counter()

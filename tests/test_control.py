@@ -66,8 +66,8 @@ def test_status_start_stop_through_the_cli(start_daemon) -> None:  # type: ignor
 def test_tune_is_bumpless_validated_and_persisted(start_daemon) -> None:  # type: ignore[no-untyped-def]
     # The slow integral-only loop: the default's unfiltered D moves the command by ~0.6 V
     # rms per cycle at 50 Hz on sensor noise alone, which would drown the step looked for.
-    d = start_daemon(replace={"ki_v_per_m_s = 3.2e7": "ki_v_per_m_s = 7.0e5",
-                              "kd_v_s_per_m = 3.5e6": "kd_v_s_per_m = 0.0"})
+    d = start_daemon(replace={"ki_v_per_m_s = 2.2e7": "ki_v_per_m_s = 7.0e5",
+                              "kd_v_s_per_m = 1.9e6": "kd_v_s_per_m = 0.0"})
     d.wait_status_lines(1)
     assert d.cli("tune", "--slew", "1000").returncode == 0
     # a setpoint step leaves a large error for the P term to act on

@@ -101,10 +101,10 @@ FAST = ("periodic_disturbance", "adc_quantization")
 
 def _integral_only(tmp_path: Path) -> tuple[Any, str]:
     """sim.toml with the slow integral-only loop it had before the damped tuning."""
-    text, n = re.subn(r"(?m)^(ki_v_per_m_s|kd_v_s_per_m) = .*$",
+    text, n = re.subn(r"(?m)^(kp_v_per_m|ki_v_per_m_s|kd_v_s_per_m) = .*$",
                       lambda m: f"{m[1]} = {7.0e5 if m[1].startswith('ki') else 0.0}",
                       (REPO / "config" / "sim.toml").read_text())
-    assert n == 2
+    assert n == 3
     (tmp_path / "integral-only.toml").write_text(text)
     return load_config(tmp_path / "integral-only.toml")
 

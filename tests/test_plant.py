@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from leveler.sim.params import PendulumParams, PlantParams, SensorParams
-from leveler.sim.pendulum import PendulumModel, equilibrium_angle, linear_matrices
+from leveler.sim.pendulum import PendulumModel, equilibrium_angle
 from leveler.sim.plant import Plant
 from leveler.typed_config import ConfigError, build
 
@@ -70,38 +70,102 @@ def test_refuses_a_pendulum_with_no_stable_equilibrium() -> None:
     assert "m g L_cm" in str(err.value)
 
 
-def test_linear_step_response_matches_python_control() -> None:
-    p = PendulumParams()
-    dt = 0.1
-    a, b = linear_matrices(p)
-    sys_c = control.ss(a, b, [[1.0, 0.0]], [[0.0]])
-    n = 600
+def full_tf(p: PendulumParams) -> control.TransferFunction:
+    """theta/phi = (m g L - J s^2) / (J s^2 + c s + k - m g L), written out from PHYSICS.md."""
+    j, c = p.inertia_kgm2, p.damping_nms_per_rad
+    mgl, k = p.gravity_stiffness_nm_per_rad, p.flexure_stiffness_nm_per_rad
+    return control.tf([-j, 0.0, mgl], [j, c, k - mgl])
+
+
+@pytest.mark.parametrize("com_length_m", [0.0496, -0.02])
+def test_linear_step_response_matches_the_full_equation(com_length_m: float) -> None:
+    """A tilt step: the reading first jumps by -phi (the pendulum's inertia holds its absolute
+    angle while the platform turns under it), then rings to the static response."""
+    p = PendulumParams(com_length_m=com_length_m)
+    dt, n, phi = 0.1, 600, 1e-6
     t = np.arange(n) * dt
-    phi = 1e-6
-    resp = control.step_response(sys_c, T=t)
-    expected = phi * np.squeeze(resp.outputs)
+    expected = phi * np.squeeze(control.step_response(full_tf(p), T=t).outputs)
     model = PendulumModel(p, dt)
-    got = [0.0]
-    for _ in range(n - 1):
-        got.append(model.step(phi))
-    np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-6 * phi * p.amplification)
-    # and its DC gain is the amplification
-    assert control.dcgain(sys_c) == pytest.approx(p.amplification, rel=1e-9)
+    got = [0.0] + [model.step(phi) for _ in range(n - 1)]  # read before each step's tilt
+    assert expected[0] == pytest.approx(-phi)
+    np.testing.assert_allclose(got[1:], expected[1:], rtol=1e-6,
+                               atol=1e-6 * phi * abs(p.amplification))
+    assert control.dcgain(full_tf(p)) == pytest.approx(p.amplification, rel=1e-9)
 
 
 def test_forced_response_with_random_tilt_matches_python_control() -> None:
+    """Against python-control's ZOH of the full equation: its output at step n includes the
+    direct term of that step's tilt, which the reading taken before the tilt moved does not."""
     p = PendulumParams()
     dt = 0.1
-    a, b = linear_matrices(p)
-    sys_d = control.c2d(control.ss(a, b, [[1.0, 0.0]], [[0.0]]), dt, method="zoh")
+    sys_d = control.c2d(control.ss(full_tf(p)), dt, method="zoh")
     rng = np.random.default_rng(3)
     u = 1e-7 * rng.standard_normal(500)
-    resp = control.forced_response(sys_d, U=u)
+    post = np.squeeze(control.forced_response(sys_d, U=u).outputs)
     model = PendulumModel(p, dt)
-    got = [0.0]
-    for val in u[:-1]:
-        got.append(model.step(float(val)))
-    np.testing.assert_allclose(got, np.squeeze(resp.outputs), rtol=1e-9, atol=1e-18)
+    got = [0.0] + [model.step(float(val)) for val in u[:-1]]
+    np.testing.assert_allclose(got, post + u - np.concatenate([[0.0], u[:-1]]),
+                               rtol=1e-9, atol=1e-18)
+
+
+def _sine_gain(p: PendulumParams, f_hz: float, dt_s: float = 1e-3) -> complex:
+    """theta/phi at f from the stepped model driven by a sine, one lock-in over whole cycles.
+    The tilt held over each step lags it by dt / 2: 1 ms keeps that below 1 % at 1.4 Hz."""
+    model = PendulumModel(p, dt_s)
+    cycles = 20
+    n = round(cycles / (f_hz * dt_s))
+    t = np.arange(2 * n) * dt_s
+    phi = 1e-6 * np.sin(2 * np.pi * f_hz * t)
+    th = np.array([model.step(float(v)) for v in phi])[n:]  # second half: transients gone
+    ref = np.exp(-2j * np.pi * f_hz * (t[n:] + dt_s))  # theta after step m is at t_(m+1)
+    return complex(2 * np.mean(th * ref) / 1e-6 / -1j)
+
+
+def test_a_hanging_pendulum_has_its_zero_at_m_g_d_over_j() -> None:
+    """A beam balance 20 mm below its pivot: static response -m g d / (k + m g d), a notch at
+    omega_z^2 = m g d / J, and the inertial limit -1 well above the resonance."""
+    p = PendulumParams(com_length_m=-0.02, damping_nms_per_rad=5e-3)
+    mgd = -p.gravity_stiffness_nm_per_rad
+    k = p.flexure_stiffness_nm_per_rad
+    assert p.amplification == pytest.approx(-mgd / (k + mgd))
+    f_z = p.zero_frequency_hz
+    assert f_z == pytest.approx(math.sqrt(mgd / p.inertia_kgm2) / (2 * math.pi))
+    g_dc, g_z = _sine_gain(p, f_z / 20), _sine_gain(p, f_z)
+    g_hi = _sine_gain(p, 12 * p.natural_frequency_hz)
+    assert abs(g_dc) == pytest.approx(abs(p.amplification), rel=0.02)
+    assert abs(g_z) < 0.05 * abs(g_dc)
+    assert g_hi.real == pytest.approx(-1.0, abs=0.03)
+    for f in (f_z / 3, f_z, 3 * f_z):  # the hold's lag, omega dt / 2, is 1.3 % at 3 f_z
+        want = complex(full_tf(p)(2j * np.pi * f))
+        assert abs(_sine_gain(p, f) - want) < 0.02 * abs(p.amplification) + 0.03 * abs(want)
+
+
+def test_hanging_nonlinear_equilibrium_and_dynamics() -> None:
+    p = PendulumParams(com_length_m=-0.02, model="nonlinear", damping_nms_per_rad=5e-3)
+    phi = 2e-3
+    theta = equilibrium_angle(p, phi)
+    assert p.gravity_stiffness_nm_per_rad * math.sin(theta + phi) == pytest.approx(
+        p.flexure_stiffness_nm_per_rad * theta, rel=1e-12)
+    model = PendulumModel(p, 0.01)
+    for _ in range(30000):
+        model.step(phi)
+    assert model.theta == pytest.approx(theta, rel=1e-6)
+
+
+def test_a_centre_of_mass_on_the_pivot_is_refused_saying_why() -> None:
+    with pytest.raises(ConfigError, match="com_length_m = 0") as err:
+        build(PlantParams, {"pendulum": {"com_length_m": 0.0}}, "plant")
+    assert "hanging" in str(err.value) and "inverted" in str(err.value)
+
+
+def test_the_default_stand_keeps_its_figures() -> None:
+    """The platform-rotation term changes no figure of the default stand: N, f_r, Q."""
+    p = PendulumParams()
+    assert p.amplification == pytest.approx(8.9858, rel=1e-4)
+    assert p.natural_frequency_hz == pytest.approx(0.7120, rel=1e-3)
+    assert p.zero_frequency_hz == pytest.approx(2.1345, rel=1e-3)
+    w0 = 2 * math.pi * p.natural_frequency_hz
+    assert p.inertia_kgm2 * w0 / p.damping_nms_per_rad == pytest.approx(18.64, rel=1e-3)
 
 
 def test_piezo_is_clamped_and_slew_limited() -> None:

@@ -150,7 +150,7 @@ def run_soak(tmp_path: Path, monkeypatch: pytest.MonkeyPatch, duration_s: float,
     config = daemon_config(tmp_path, tmp_path / "c.sock", rate_hz=RATE_HZ, sim=sim, replace={
         "status_interval_s = 5.0": f"status_interval_s = {STATUS_S}",
         "engage_on_start = true": "engage_on_start = true\nstuck_after_samples = 30\n"
-                                  "max_step_m = 5.0e-8",
+                                  "max_step_m = 2.0e-7",
         'compression = "zstd"': f'compression = "zstd"\nrotate_interval_s = {rotate_s}',
         "chunk_interval_s = 1.0": f"chunk_interval_s = {chunk_s}"})
     soak = Soak(duration_s, checkpoints_s)

@@ -24,7 +24,7 @@ from leveler.loop.pid import PID, ControllerConfig
 from leveler.settings import Config, load_config
 from leveler.sim.effects import Effect, EffectsParams, Signals
 from leveler.sim.params import PlantParams
-from leveler.sim.pendulum import PendulumModel
+from leveler.sim.pendulum import discrete_matrices
 from leveler.typed_config import ConfigError, build
 
 _MAX_BAD_FRACTION = 0.05
@@ -152,11 +152,10 @@ def excitation_v(meas: Measured) -> np.ndarray | None:
 
 
 def pendulum_filter(params: PlantParams, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """theta/phi of the ZOH-discretized linear pendulum as lfilter coefficients."""
-    pm = PendulumModel(params.pendulum, dt_s)
-    a = np.array([[pm._a11, pm._a12], [pm._a21, pm._a22]])
-    b = np.array([[pm._b1], [pm._b2]])
-    num, den = ss2tf(a, b, np.array([[1.0, 0.0]]), np.array([[0.0]]))
+    """theta/phi of the discretized linear pendulum (`PendulumModel`'s steps) as lfilter
+    coefficients."""
+    a, b = discrete_matrices(params.pendulum, dt_s)
+    num, den = ss2tf(a, b[:, None], np.array([[1.0, 0.0, 0.0]]), np.array([[0.0]]))
     return np.ravel(num), np.ravel(den)
 
 

@@ -1,10 +1,11 @@
 """PID gains suggested from the plant model (python-control), with the margins to judge them.
 
 The model is the linear stand at the loop rate: piezo volts -> stroke (`gain_m_per_v`) ->
-platform tilt (/ `support_spacing_m`) -> inverted pendulum (`linear_matrices`, theta from
-phi) -> sensor (`sensor_arm_m` * theta), discretised with a zero-order hold. That ZOH is
-exactly `leveler.sim.plant.Plant`: the loop reads y[n] at t_n, writes u[n] after, and u[n]
-is held over the step to t_{n+1}, so y[n+1] is the first reading to see it. The ZOH model
+platform tilt (/ `support_spacing_m`) -> pendulum (`discrete_matrices`: theta from phi,
+the platform's own rotation included) -> sensor (`sensor_arm_m` * theta), with the tilt
+held over each step (zero-order hold). That is exactly `leveler.sim.plant.Plant`: the
+loop reads y[n] at t_n, writes u[n] after, and u[n] is held over the step to t_{n+1}, so
+y[n+1] is the first reading to see it. The ZOH model
 is strictly proper, so it already carries that one sample of computational delay; another
 z^-1 would count it twice (the tests pin this against the simulator's step response).
 ADC quantization, the piezo and output slew limits, the output rails and anti-windup are
@@ -19,14 +20,14 @@ that is D on the error up to sign, so the loop transfer function is the same.
 Design rule (`suggest`). The disturbance is thermal tilt, largest at the lowest
 frequencies, so the figure of merit is the loop gain, |1 + L|, at 0.1 and 1 mHz, which an
 integral term sets: |L| ~ ki * DC gain / (2 pi f). The pendulum's lightly damped resonance
-(0.71 Hz, Q ~ 19 with the defaults: the plant gain there is ~18x its DC gain) caps it. The
+(0.71 Hz, Q ~ 19 with the defaults: the plant gain there is ~20x its DC gain) caps it. The
 loop is *gain* stabilised there: |L| <= 1/2 over the whole resonance band (f_r/2 to 2 f_r),
 i.e. >= 6 dB of gain margin whatever the phase there: extra delay cannot destabilise it, and
 nothing relies on cancelling a resonance that moves (f_r rests on the small difference
 k - m g L_cm). The 2x of gain it tolerates is about +5 % of m g L_cm on the default stand.
 In continuous time |C| at the resonance is sqrt(kp^2 + (ki / w_r)^2), so for a given
 resonance gain kp only costs ki: the integrator alone maximises low-frequency suppression
-and reaches a crossover near f_r / (2 Q) (19 mHz by default) with ~89 deg of phase margin.
+and reaches a crossover near f_r / (2 Q) (17 mHz by default) with ~89 deg of phase margin.
 (Sampled, kp = ki dt / 2 would cancel the integrator's half-sample lag for ~2.5 % more ki at
 10 Hz; not worth a term.) The requested phase margin is therefore a floor: going below
 the integrator's would need kp < 0, a right-half-plane controller zero that also raises the
@@ -55,7 +56,7 @@ import control
 import numpy as np
 
 from leveler.sim.params import PlantParams
-from leveler.sim.pendulum import linear_matrices
+from leveler.sim.pendulum import discrete_matrices
 
 SUPPRESSION_HZ = (1e-4, 1e-3, 1e-2)
 RESONANCE_LOOP_GAIN_MAX = 0.5  # over the resonance band: 6 dB of gain margin at any phase
@@ -87,14 +88,14 @@ class Suggestion:
 
 
 def plant_tf(params: PlantParams, rate_hz: float) -> control.TransferFunction:
-    """Piezo volts -> sensor metres, ZOH-discretised at dt = 1 / rate_hz (see module doc)."""
+    """Piezo volts -> sensor metres, discretized at dt = 1 / rate_hz as the simulator steps it."""
     if not rate_hz > 0:
         raise ValueError(f"rate_hz must be > 0, got {rate_hz}")
     pe = params.pendulum
-    a, b = linear_matrices(pe)
-    tilt_per_v = params.piezo.gain_m_per_v / params.platform.support_spacing_m
-    cont = control.ss(a, b * tilt_per_v, [[pe.sensor_arm_m, 0.0]], [[0.0]])
-    return control.tf(control.c2d(cont, 1.0 / rate_hz, "zoh"))
+    a, b = discrete_matrices(pe, 1.0 / rate_hz)
+    volts = params.piezo.gain_m_per_v / params.platform.support_spacing_m * pe.sensor_arm_m
+    sys = control.ss(a, b[:, None] * volts, [[1.0, 0.0, 0.0]], [[0.0]], 1.0 / rate_hz)
+    return control.minreal(control.tf(sys), verbose=False)
 
 
 def controller_tf(kp: float, ki: float, kd: float, d_filter_tau_s: float,

@@ -18,14 +18,18 @@ G_STANDARD = 9.80665
 
 @dataclass(frozen=True, slots=True)
 class PendulumParams:
-    """Inverted-pendulum tilt amplifier: a mass on a flexure, sensed at its end.
+    """Pendulum tiltmeter: a mass on a flexure, sensed at its end, of either kind.
 
-    Defaults give the paper's example k = 0.1 N m/rad, m g L_cm = 0.09 N m/rad (N = 9).
+    `com_length_m` is signed: the centre of mass above the pivot (> 0) makes today's
+    inverted amplifier, N = 1 / (k / (m g L) - 1); below it (< 0, a hanging pendulum or
+    beam balance with offset d = -L) the restoring torque is k + m g d and the static
+    response -m g d / (k + m g d). Defaults give the paper's example k = 0.1 N m/rad,
+    m g L = 0.09 N m/rad (N = 9).
     """
 
     model: Literal["linear", "nonlinear"] = "linear"
     mass_kg: float = positive(0.185)
-    com_length_m: float = positive(0.0496)
+    com_length_m: float = 0.0496
     flexure_stiffness_nm_per_rad: float = positive(0.1)
     inertia_kgm2: float = positive(5.0e-4)
     damping_nms_per_rad: float = non_negative(1.2e-4)
@@ -35,6 +39,11 @@ class PendulumParams:
     def __post_init__(self) -> None:
         mgl = self.gravity_stiffness_nm_per_rad
         k = self.flexure_stiffness_nm_per_rad
+        if self.com_length_m == 0:
+            raise ValueError(
+                "com_length_m = 0: with its centre of mass on the pivot the pendulum feels no "
+                "gravity torque and reads no static tilt (> 0: inverted, above the pivot; "
+                "< 0: hanging, below it)")
         if mgl >= k:
             raise ValueError(
                 f"inverted pendulum has no stable equilibrium: gravity stiffness m g L_cm = "
@@ -48,13 +57,20 @@ class PendulumParams:
 
     @property
     def amplification(self) -> float:
-        """Small-angle N = theta/phi = 1 / (k / (m g L_cm) - 1)."""
+        """Small-angle static theta/phi = m g L / (k - m g L): N > 0 inverted, -1..0 hanging."""
         return 1.0 / (self.flexure_stiffness_nm_per_rad / self.gravity_stiffness_nm_per_rad - 1.0)
 
     @property
     def natural_frequency_hz(self) -> float:
+        """sqrt((k - m g L) / J) / 2 pi: the resonance of theta's response."""
         k_eff = self.flexure_stiffness_nm_per_rad - self.gravity_stiffness_nm_per_rad
         return math.sqrt(k_eff / self.inertia_kgm2) / (2 * math.pi)
+
+    @property
+    def zero_frequency_hz(self) -> float:
+        """sqrt(|m g L| / J) / 2 pi: where the J phi'' term equals the gravity term (a
+        right-half-plane zero when inverted, the response's notch when hanging)."""
+        return math.sqrt(abs(self.gravity_stiffness_nm_per_rad) / self.inertia_kgm2) / math.tau
 
 
 @dataclass(frozen=True, slots=True)

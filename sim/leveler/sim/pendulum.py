@@ -1,9 +1,22 @@
-"""Inverted-pendulum dynamics: J theta'' + c theta' + k theta = m g L_cm sin(theta + phi).
+"""Pendulum tiltmeter dynamics, with the platform's own rotation:
+
+    J (theta'' + phi'') + c theta' + k theta - m g L sin(theta + phi) = 0
 
 theta is the pendulum's deflection relative to the platform (what the sensor on the
-platform sees, times the arm), phi the platform tilt. Two forms share one interface:
-the linear one (exact zero-order-hold discretization, fast and exact for micro-radians)
-and the full non-linear one (RK4), which the equilibrium and design tools need.
+platform sees, divided by the arm), phi the platform tilt, L the signed height of the
+centre of mass above the pivot (> 0 inverted, < 0 hanging). Linearised,
+
+    theta / phi = (m g L - J s^2) / (J s^2 + c s + k - m g L)
+
+(docs/procedures.md derives it). The J phi'' term is why a tilt step first swings the
+reading the wrong way (the pendulum's inertia holds its absolute angle) and why a hanging
+pendulum's response has its zero at m g d / J.
+
+The platform tilt is held over each step (zero-order hold), so phi'' is a pair of impulses
+at each change of phi: integrating the equation across one moves theta by -dphi and its
+rate by +c dphi / J, and between changes the equation is the fixed-platform one. Two forms
+share that: the linear one (exact discretization, fast and exact for micro-radians) and
+the full non-linear one (RK4), which the equilibrium and design tools need.
 """
 
 from __future__ import annotations
@@ -18,21 +31,22 @@ from leveler.sim.params import PendulumParams
 
 
 def equilibrium_angle(p: PendulumParams, phi_rad: float) -> float:
-    """Solve m g L_cm sin(theta + phi) = k theta for the stable theta (rad).
+    """Solve m g L sin(theta + phi) = k theta for the stable theta (rad).
 
-    With k > m g L_cm the left side minus the right is strictly decreasing in theta, so the
-    root is unique and bracketed by [-pi, pi].
-    """
+    Within a quarter turn of the vertical, m g L sin(theta + phi) - k theta is strictly
+    decreasing for a stable pendulum of either kind (k > m g L when inverted), so the root
+    there is unique and bracketed."""
     mgl, k = p.gravity_stiffness_nm_per_rad, p.flexure_stiffness_nm_per_rad
 
     def torque(theta: float) -> float:
         return mgl * math.sin(theta + phi_rad) - k * theta
 
-    return float(brentq(torque, -math.pi, math.pi, xtol=1e-18, rtol=4 * np.finfo(float).eps))
+    lim = math.pi if mgl > 0 else math.pi / 2 - abs(phi_rad)
+    return float(brentq(torque, -lim, lim, xtol=1e-18, rtol=4 * np.finfo(float).eps))
 
 
 def linear_matrices(p: PendulumParams) -> tuple[np.ndarray, np.ndarray]:
-    """Continuous state space x = [theta, omega], input phi: x' = A x + B phi."""
+    """Continuous state space x = [theta, omega] on a platform held at phi: x' = A x + B phi."""
     j, c = p.inertia_kgm2, p.damping_nms_per_rad
     mgl, k = p.gravity_stiffness_nm_per_rad, p.flexure_stiffness_nm_per_rad
     a = np.array([[0.0, 1.0], [-(k - mgl) / j, -c / j]])
@@ -40,11 +54,36 @@ def linear_matrices(p: PendulumParams) -> tuple[np.ndarray, np.ndarray]:
     return a, b
 
 
+def discrete_matrices(p: PendulumParams, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """The linear pendulum stepped as `PendulumModel` steps it, as one linear system.
+
+    State x_n = [theta_n, omega_n, phi_(n-1)], input phi_n: x_(n+1) = A x_n + B phi_n, and
+    theta_n = x_n[0] is the reading at step n (before that step's tilt moves it)."""
+    a2, b2 = _zoh(p, dt_s)
+    jump = np.array([-1.0, p.damping_nms_per_rad / p.inertia_kgm2])  # per unit dphi
+    a = np.zeros((3, 3))
+    a[:2, :2] = a2
+    a[:2, 2] = -a2 @ jump
+    b = np.zeros(3)
+    b[:2] = a2 @ jump + b2
+    b[2] = 1.0
+    return a, b
+
+
+def _zoh(p: PendulumParams, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Exact discretization of `linear_matrices` with phi held over dt."""
+    a, b = linear_matrices(p)
+    m = np.zeros((3, 3))
+    m[:2, :2], m[:2, 2:] = a * dt_s, b * dt_s
+    e = expm(m)
+    return e[:2, :2], e[:2, 2]
+
+
 class PendulumModel:
     """Advances the pendulum by a fixed dt with the platform tilt held over the step."""
 
-    __slots__ = ("_a11", "_a12", "_a21", "_a22", "_b1", "_b2", "_c", "_dt", "_j", "_k",
-                 "_linear", "_mgl", "_substeps", "omega", "theta")
+    __slots__ = ("_a11", "_a12", "_a21", "_a22", "_b1", "_b2", "_c", "_c_per_j", "_dt", "_j",
+                 "_k", "_linear", "_mgl", "_phi", "_substeps", "omega", "theta")
 
     def __init__(self, p: PendulumParams, dt_s: float, substeps: int = 4) -> None:
         if not dt_s > 0:
@@ -53,15 +92,14 @@ class PendulumModel:
         self._dt = dt_s
         self._substeps = substeps
         self._j, self._c = p.inertia_kgm2, p.damping_nms_per_rad
+        self._c_per_j = self._c / self._j
         self._k, self._mgl = p.flexure_stiffness_nm_per_rad, p.gravity_stiffness_nm_per_rad
-        a, b = linear_matrices(p)
-        m = np.zeros((3, 3))
-        m[:2, :2], m[:2, 2:] = a * dt_s, b * dt_s
-        e = expm(m)
-        self._a11, self._a12, self._a21, self._a22 = (float(v) for v in e[:2, :2].ravel())
-        self._b1, self._b2 = float(e[0, 2]), float(e[1, 2])
+        e, eb = _zoh(p, dt_s)
+        self._a11, self._a12, self._a21, self._a22 = (float(v) for v in e.ravel())
+        self._b1, self._b2 = float(eb[0]), float(eb[1])
         self.theta = 0.0
         self.omega = 0.0
+        self._phi = 0.0  # the platform tilt the last step held
 
     def settle(self, p: PendulumParams, phi_rad: float) -> None:
         """Start at rest at the static equilibrium for tilt phi."""
@@ -70,22 +108,25 @@ class PendulumModel:
         else:
             self.theta = equilibrium_angle(p, phi_rad)
         self.omega = 0.0
+        self._phi = phi_rad
 
     def step(self, phi_rad: float) -> float:
-        """Advance one dt; returns the new theta."""
+        """Advance one dt with the platform at phi_rad; returns the new theta."""
+        dphi = phi_rad - self._phi
+        self._phi = phi_rad
+        th = self.theta - dphi  # the platform turned under the pendulum's inertia
+        om = self.omega + self._c_per_j * dphi
         if self._linear:
-            th, om = self.theta, self.omega
             self.theta = self._a11 * th + self._a12 * om + self._b1 * phi_rad
             self.omega = self._a21 * th + self._a22 * om + self._b2 * phi_rad
             return self.theta
-        return self._step_rk4(phi_rad)
+        return self._step_rk4(th, om, phi_rad)
 
     def _accel(self, th: float, om: float, phi: float) -> float:
         return (self._mgl * math.sin(th + phi) - self._k * th - self._c * om) / self._j
 
-    def _step_rk4(self, phi: float) -> float:
+    def _step_rk4(self, th: float, om: float, phi: float) -> float:
         h = self._dt / self._substeps
-        th, om = self.theta, self.omega
         acc = self._accel
         for _ in range(self._substeps):
             k1t, k1o = om, acc(th, om, phi)
