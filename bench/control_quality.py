@@ -62,7 +62,8 @@ def variants(cfg: Config) -> list[tuple[str, Config]]:
     return [
         ("integral only, 10 mHz crossover (before)",
          _controller(cfg, kp_v_per_m=0.0, ki_v_per_m_s=7.0e5, kd_v_s_per_m=0.0)),
-        ("+ resonance damped by D, 46x the integral (default)", cfg),
+        (f"+ resonance damped by D, {cfg.controller.ki_v_per_m_s / 7.0e5:.0f}x the integral "
+         "(default)", cfg),
         (f"{COARSE_ADC_BITS}-bit ADC, 1 conversion/cycle", coarse),
         (f"{COARSE_ADC_BITS}-bit ADC + {OVERSAMPLE}x oversampling",
          _sensor(coarse, samples_per_cycle=OVERSAMPLE)),
