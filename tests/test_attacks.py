@@ -107,6 +107,26 @@ def test_a_config_cut_at_a_line_boundary_is_refused_and_applied_only_whole(
     assert reloads[-1]["detail"]["by"] == "SIGHUP"
 
 
+def test_gains_the_model_predicts_unstable_are_not_engaged_on_start(
+        start_daemon) -> None:  # type: ignore[no-untyped-def]
+    """Gains tuned for another rate or another pendulum (here: the D that damps the
+    resonance dropped) must not close the loop at start, where the stand would ring at once;
+    the actuator stays at its safe voltage, the reason goes to the journal and the log, and
+    `leveler start` still engages by hand."""
+    d = start_daemon(rate_hz=10.0, replace={"kd_v_s_per_m = 1.9e6": "kd_v_s_per_m = 0.0"})
+    d.wait_status_lines(1)
+    st = status(d)
+    assert st["state"] == "idle"
+    assert d.cli("start").returncode == 0
+    wait_for(lambda: status(d)["state"] == "engaged", "start by hand did not engage")
+    err = d.stop()
+    assert ("not engaged on start: the plant model predicts an unstable loop at 10 Hz: a "
+            "closed-loop pole at |z| = 1.09") in err, err
+    assert "leveler tune --suggest" in err
+    (ev,) = events(d, "stability")
+    assert ev["reason"].startswith("not engaged on start: the plant model predicts an unstable")
+
+
 def test_tune_refuses_gains_the_model_predicts_unstable_unless_forced(
         start_daemon) -> None:  # type: ignore[no-untyped-def]
     d = start_daemon(rate_hz=10.0)

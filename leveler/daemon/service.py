@@ -248,6 +248,23 @@ class Daemon:
                 _log.error("reload (%s): %s", who, exc)
                 raise
 
+    def _unstable_at_start(self) -> str | None:
+        """Why the plant model says the configured gains make an unstable loop, or None.
+
+        Checked before engage_on_start closes the loop: gains tuned at another rate, or for
+        a pendulum of the other kind (a hanging one reads tilt with the opposite sign), would
+        otherwise set the stand ringing at once. `leveler start` still engages by hand."""
+        from leveler.analysis.suggest import predicted_instability  # python-control
+
+        c = self.cfg.controller
+        why = predicted_instability(self.cfg.plant, self.cfg.loop.rate_hz, c.kp_v_per_m,
+                                    c.ki_v_per_m_s, c.kd_v_s_per_m, c.d_filter_tau_s)
+        if why is not None:
+            _log.warning("not engaged on start: %s; the actuator holds its safe voltage "
+                         "(check the gains with `leveler tune --suggest`; `leveler start` "
+                         "engages anyway)", why)
+        return why
+
     def _refuse_unstable(self, plant: PlantParams, old: ControllerConfig,
                          new: ControllerConfig) -> None:
         """ProtocolError if `new` changes the loop's gains to ones the plant model predicts
@@ -510,6 +527,7 @@ class Daemon:
         # interval (5 ms by default) after its deadline: keep that below a period.
         sys.setswitchinterval(min(sys.getswitchinterval(), self.dt / 4))
         self.memory, self.scheduler = lock_memory(), scheduler()
+        unstable = self._unstable_at_start() if cfg.loop.engage_on_start else None
         frozen = freeze_heap()  # last before the loop: what exists now lives as long
         print(f"leveler {__version__}: {cfg.sensor.backend} backend at {cfg.loop.rate_hz:g} Hz, "
               f"logging to {self.log.path}, control socket {self.socket_path}", flush=True)
@@ -525,7 +543,9 @@ class Daemon:
                       socket=str(self.socket_path), scheduler=self.scheduler,
                       memory=self.memory, heap_frozen=frozen)
             loop.cycle(t, clock.wall_ns(t))
-            if self.cfg.loop.engage_on_start:
+            if unstable is not None:  # the actuator stays at its safe voltage
+                loop.emit("stability", f"not engaged on start: {unstable}", t)
+            elif self.cfg.loop.engage_on_start:
                 loop.engage(t, "engage_on_start")
             while not self.stop_reason and (self.duration_s is None or t < self.duration_s):
                 t = clock.tick()
