@@ -5,9 +5,9 @@ platform tilt (/ `support_spacing_m`) -> pendulum (`discrete_matrices`: theta fr
 the platform's own rotation included) -> sensor (`sensor_arm_m` * theta), with the tilt
 held over each step (zero-order hold). That is exactly `leveler.sim.plant.Plant`: the
 loop reads y[n] at t_n, writes u[n] after, and u[n] is held over the step to t_{n+1}, so
-y[n+1] is the first reading to see it. The ZOH model
-is strictly proper, so it already carries that one sample of computational delay; another
-z^-1 would count it twice (the tests pin this against the simulator's step response).
+y[n+1] is the first reading to see it. The model is strictly proper, so it already
+carries that one sample of computational delay; another z^-1 would count it twice (the
+tests pin this against the simulator's step response).
 ADC quantization, the piezo and output slew limits, the output rails and anti-windup are
 not modelled: the margins hold for small signals, which is how the loop spends its life.
 

@@ -248,17 +248,20 @@ class Daemon:
                 _log.error("reload (%s): %s", who, exc)
                 raise
 
+    def _instability(self, plant: PlantParams, c: ControllerConfig) -> str | None:
+        """Why the plant model predicts `c`'s gains unstable at the running rate, or None."""
+        from leveler.analysis.suggest import predicted_instability  # python-control: off the loop
+
+        return predicted_instability(plant, self.cfg.loop.rate_hz, c.kp_v_per_m,
+                                     c.ki_v_per_m_s, c.kd_v_s_per_m, c.d_filter_tau_s)
+
     def _unstable_at_start(self) -> str | None:
         """Why the plant model says the configured gains make an unstable loop, or None.
 
         Checked before engage_on_start closes the loop: gains tuned at another rate, or for
         a pendulum of the other kind (a hanging one reads tilt with the opposite sign), would
         otherwise set the stand ringing at once. `leveler start` still engages by hand."""
-        from leveler.analysis.suggest import predicted_instability  # python-control
-
-        c = self.cfg.controller
-        why = predicted_instability(self.cfg.plant, self.cfg.loop.rate_hz, c.kp_v_per_m,
-                                    c.ki_v_per_m_s, c.kd_v_s_per_m, c.d_filter_tau_s)
+        why = self._instability(self.cfg.plant, self.cfg.controller)
         if why is not None:
             _log.warning("not engaged on start: %s; the actuator holds its safe voltage "
                          "(check the gains with `leveler tune --suggest`; `leveler start` "
@@ -272,10 +275,7 @@ class Daemon:
         gains = ("kp_v_per_m", "ki_v_per_m_s", "kd_v_s_per_m", "d_filter_tau_s")
         if all(getattr(old, k) == getattr(new, k) for k in gains):
             return
-        from leveler.analysis.suggest import predicted_instability  # python-control: off the loop
-
-        why = predicted_instability(plant, self.cfg.loop.rate_hz, new.kp_v_per_m,
-                                    new.ki_v_per_m_s, new.kd_v_s_per_m, new.d_filter_tau_s)
+        why = self._instability(plant, new)
         if why is not None:
             raise ProtocolError(f"{why}; nothing applied (check the margins with `leveler "
                                 "tune --suggest`, or --force to apply anyway)")
