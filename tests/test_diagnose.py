@@ -194,6 +194,10 @@ def test_cli_json_contract_report_and_fitted_model(tmp_path: Path,
     assert set(out) >= {"effects", "gap_before", "gap_after", "model_out"}
     assert [e["name"] for e in out["effects"]] == ["periodic_disturbance"]
     assert out["effects"][0]["params"]["shape"] == "sawtooth"
+    # The sawtooth's timing is refined with the resonance it was fitted against: held at
+    # its first fit (drop 5 ms late), the recalibration put Q 14 % high to match it.
+    assert abs(out["effects"][0]["params"]["phase_s"] - 31.0) < 0.002
+    assert abs(out["recalibration"]["q"]["offset_rel"]) < 0.05
     assert out["model_out"] == str(tmp_path / "night.fitted.toml")
     for name in ("summary.md", "residual_asd.png", "timeseries.png"):
         assert (tmp_path / "rep" / name).stat().st_size > 1000

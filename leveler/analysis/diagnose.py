@@ -2,7 +2,8 @@
 
 First the model's calibrated numbers are fitted within their stated tolerances
 (`leveler.analysis.recalibrate`): an in-tolerance offset is a calibration, not an effect.
-Then, per round:
+They stay free, under the same priors, in every fit below (`leveler.analysis.nuisance`):
+a candidate is scored only on what no in-tolerance knob explains. Then, per round:
 1. replay the log against the current model; the residual's noise spectrum is fitted on
    a training part (first two thirds of the usable log) and on the held-out rest;
 2. every effect not yet in the model reads its starting guesses off the residual
@@ -10,16 +11,22 @@ Then, per round:
    whitened residual (`leveler.analysis.whittle`);
 3. each fit is scored on the held-out part: the gain in log-likelihood there must beat a
    BIC penalty (k ln n) or the effect is not real; of those that pass, the best must also
-   fit the held-out part on its own with a compatible size (same sign, within 2x);
+   fit the held-out part on its own with a compatible size (same sign, within 2x); when
+   the best of another family does too and its evidence is within AMBIGUITY, the answer
+   is "ambiguous between A and B" and the search stops there, taking neither;
 4. the winner is refitted on the whole log, added to the model, and the round repeats;
    when nothing passes, the search stops and says so: no effect is invented.
+Lines left in the held-out residual beyond a look-elsewhere threshold are then reported
+as unexplained structure (`leveler.analysis.leftover`), never given the nearest name.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -28,6 +35,8 @@ from scipy.optimize import least_squares, minimize_scalar
 from scipy.signal import freqz
 
 from leveler.analysis.evidence import Evidence
+from leveler.analysis.leftover import Leftover, leftover
+from leveler.analysis.nuisance import Nuisance, Projection
 from leveler.analysis.predict import (
     Measured,
     Predictor,
@@ -41,6 +50,11 @@ from leveler.sim.effects import EFFECTS, Effect, EffectsParams
 from leveler.sim.params import PlantParams
 
 _MIN_NOISE_SHARE = 0.5
+#: Two families whose held-out evidence (2 ln of the likelihood ratio) is closer than this
+#: are not told apart: 10 is "very strong" on Kass & Raftery's scale; for strong effects 5 %
+#: of the better one's, as the forms and the fitted noise spectrum are approximations.
+AMBIGUITY = 10.0
+AMBIGUITY_REL = 0.05
 BANDS_HZ: dict[str, tuple[float, float]] = {
     "0.1-1 mHz": (1e-4, 1e-3),
     "1-10 mHz": (1e-3, 1e-2),
@@ -68,6 +82,13 @@ class Candidate:
     penalty: float
     accepted: bool = False
     note: str = ""
+    sigma: dict[str, float] = field(default_factory=dict)
+    round: int = 0
+
+    @property
+    def score(self) -> float:
+        """Held-out evidence beyond the complexity penalty: what candidates are ranked by."""
+        return self.deviance_test - self.penalty
 
 
 @dataclass
@@ -88,6 +109,8 @@ class Diagnosis:
     wall_s: float = 0.0
     params: PlantParams | None = None  # the recalibrated plant (effects aside)
     recalibration: Recalibration | None = None
+    ambiguous: list[Candidate] = field(default_factory=list)  # the two it could not tell apart
+    leftover: Leftover | None = None  # lines no family explained
 
 
 def warmup_samples(meas: Measured, pred: Predictor) -> int:
@@ -114,13 +137,20 @@ def make_whitener(meas: Measured, pred: Predictor, span: slice) -> Whitener:
     return w
 
 
-def fit_effect(start: Effect, pred: Predictor, w: Whitener, meas: Measured) -> Fit:
-    """Least squares on the whitened residual over the effect's free parameters.
+def fit_effect(start: Effect, pred: Predictor, w: Whitener, meas: Measured,
+               nuis: Projection) -> Fit:
+    """Least squares on the whitened residual over the effect's free parameters, jointly
+    with the recalibrated knobs (`leveler.analysis.nuisance`).
 
-    The magnitude of an effect that is linear in it is solved in closed form inside
-    (variable projection): the search is then only over shapes, periods, lags and
-    frequencies, which is where the local minima are. Uncertainties come from the
+    The magnitude of an effect that is linear in it is solved in closed form inside, with
+    the knobs (variable projection): the search is then only over shapes, periods, lags
+    and frequencies, which is where the local minima are. Uncertainties come from the
     Jacobian at the optimum, with the residual's own scatter.
+
+    An effect whose cost is a needle in its parameters (a sawtooth's sharp drop: a period
+    0.01 % off is as bad as none) says so with `fit_bands_hz`: it is fitted first on the
+    bins below each of those frequencies in turn, coarse to fine, each landscape wide
+    enough for the previous stage's precision.
     """
     y = meas.y_m
     white = w.whiten(y - pred.base.y_m)
@@ -137,16 +167,15 @@ def fit_effect(start: Effect, pred: Predictor, w: Whitener, meas: Measured) -> F
         return start.replace(**{k: float(v) for k, v in zip(keys, theta0 + x * scale,
                                                              strict=True)})
 
-    def solve(x: np.ndarray) -> tuple[np.ndarray, Effect]:
+    def solve(x: np.ndarray, proj: Projection = nuis, keep: Any = slice(None)
+              ) -> tuple[np.ndarray, Effect]:
         fx = shaped(x)
         if mag is None:
-            return w.whiten(y - pred.with_candidate(fx)), fx
-        c = w.whiten(pred.with_candidate(fx.replace(**{mag: unit})) - pred.base.y_m)
-        cc = float(c @ c)
-        beta = float(c @ white) / cc if cc > 0 else 0.0
+            return proj.residual(w.whiten(y - pred.with_candidate(fx))[keep])[1], fx
+        c = w.whiten(pred.with_candidate(fx.replace(**{mag: unit})) - pred.base.y_m)[keep]
         lo_m, hi_m = fx.bounds(mag)
-        beta = min(max(beta * unit, lo_m), hi_m) / unit  # the optimum within the bounds
-        return white - beta * c, fx.replace(**{mag: beta * unit})
+        beta, e = proj.residual(white[keep], c, (lo_m / unit, hi_m / unit))
+        return e, fx.replace(**{mag: beta * unit})
 
     x = np.zeros(len(keys))
     if len(keys) == 1 and theta0[0] > 0:
@@ -164,18 +193,23 @@ def fit_effect(start: Effect, pred: Predictor, w: Whitener, meas: Measured) -> F
         best = minimize_scalar(cost, bounds=(xs[max(i - 1, 0)], xs[min(i + 1, len(xs) - 1)]),
                                method="bounded", options={"xatol": 1e-4})
         x = np.array([best.x])
+    box = ((lo - theta0) / scale, (hi - theta0) / scale)
+    for f_max in start.fit_bands_hz() if keys else ():
+        keep = np.tile(w.f_hz < f_max, 2)
+        proj = nuis.restricted(keep)
+        x = least_squares(lambda v, p=proj, k=keep: solve(v, p, k)[0], bounds=box,
+                          diff_step=1e-3, max_nfev=10 * (len(keys) + 1), x0=x).x
     if keys:
         res = least_squares(lambda v: solve(v)[0],
-                            bounds=((lo - theta0) / scale, (hi - theta0) / scale),
-                            diff_step=1e-3, max_nfev=40 * (len(keys) + 1), x0=x)
+                            bounds=box, diff_step=1e-3, max_nfev=40 * (len(keys) + 1), x0=x)
         x = res.x
     e, fitted = solve(x)
     fitted = fitted.canonical()
-    return Fit(fitted, _sigma(fitted, pred, w, meas, e), float(e @ e))
+    return Fit(fitted, _sigma(fitted, pred, w, meas, e, nuis), float(e @ e))
 
 
 def _sigma(fx: Effect, pred: Predictor, w: Whitener, meas: Measured,
-           e: np.ndarray) -> dict[str, float]:
+           e: np.ndarray, nuis: Projection) -> dict[str, float]:
     """1-sigma uncertainties of all free parameters from a finite-difference Jacobian."""
     keys = fx.free
     cols = []
@@ -185,8 +219,8 @@ def _sigma(fx: Effect, pred: Predictor, w: Whitener, meas: Measured,
         v = float(getattr(fx, k))
         if v + h > hi:
             h = -h
-        plus = w.whiten(meas.y_m - pred.with_candidate(fx.replace(**{k: v + h})))
-        cols.append((plus - e) / h)
+        plus = nuis.residual(w.whiten(meas.y_m - pred.with_candidate(fx.replace(**{k: v + h}))))
+        cols.append((plus[1] - e) / h)
     jac = np.array(cols).T
     s2 = float(e @ e) / max(len(e) - len(keys), 1) * ENBW_BINS
     try:
@@ -214,21 +248,25 @@ def _stable(a: Effect, b: Effect) -> bool:
     return x * y > 0 and 0.5 <= abs(y / x) <= 2.0
 
 
-def _recalibrated(meas: Measured, plant: PlantParams, whole: slice, excited: bool
-                  ) -> tuple[Predictor, Recalibration | None]:
+def _recalibrated(meas: Measured, plant: PlantParams, whole: slice, excited: bool,
+                  refine: Effect | None = None
+                  ) -> tuple[Predictor, Recalibration | None, Nuisance]:
     """`plant` (nominal values, the effects found so far) recalibrated within its stated
     tolerances: an in-tolerance offset is no missing effect. A knob the fit puts beyond
     PULL_LIMIT sigma is held at nominal and the rest refitted, until none is: what pulled
     it (a sensor gain error, or an effect that mimics one, such as a coarse converter) is
-    then for the candidates to compete for on held-out data, not taken for granted."""
+    then for the candidates to compete for on held-out data, not taken for granted.
+    `refine`, the effect just found, is refitted with the knobs (see `recalibrate`)."""
     pred = Predictor(plant, meas)
     w = make_whitener(meas, pred, whole)
-    recal = recalibrate(meas, plant, w, excited)
+    recal = recalibrate(meas, plant, w, excited, refine=refine)
     while recal is not None and recal.disputed:  # the next knob may take up what was held
-        recal = recalibrate(meas, plant, w, excited, omit=recal.held + tuple(recal.disputed))
+        recal = recalibrate(meas, plant, w, excited, omit=recal.held + tuple(recal.disputed),
+                            refine=refine)
     if recal is None:
-        return pred, None
-    return Predictor(recal.params, meas), recal
+        return pred, None, Nuisance(pred, None, meas)
+    pred = Predictor(recal.params, meas)
+    return pred, recal, Nuisance(pred, recal, meas)
 
 
 def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
@@ -240,17 +278,19 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
     train, test, whole = slice(skip, split), slice(split, n), slice(skip, n)
     gap_before = gap(meas, pred, whole)
     actuator_excited = _actuator_excited(meas, pred, whole)
-    pred, recal = _recalibrated(meas, meas.config.plant, whole, actuator_excited)
+    pred, recal, nuisance = _recalibrated(meas, meas.config.plant, whole, actuator_excited)
     found: list[Found] = []
     tried: list[Candidate] = []
+    ambiguous: list[Candidate] = []
     temperature = meas.sig.temperature_k is not None
     excited = temperature or actuator_excited
     noise = sensor_noise_m(pred.params, meas.dt_s)
     while len(found) < max_effects:
         w_train = make_whitener(meas, pred, train)
         w_test = make_whitener(meas, pred, test)
-        cost0_train = w_train.cost(meas.y_m - pred.base.y_m)
-        cost0_test = w_test.cost(meas.y_m - pred.base.y_m)
+        n_train, n_test = nuisance.on(w_train), nuisance.on(w_test)
+        cost0_train = n_train.cost(w_train.whiten(meas.y_m - pred.base.y_m))
+        cost0_test = n_test.cost(w_test.whiten(meas.y_m - pred.base.y_m))
         ev = Evidence(meas, pred, w_train)
         passed: list[tuple[float, Fit, Candidate]] = []
         for cls in EFFECTS.values():
@@ -262,19 +302,21 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
                 continue
             fits = []
             for guess in cls.guesses(ev):
-                f = fit_effect(guess, pred, w_train, meas)
+                f = fit_effect(guess, pred, w_train, meas, n_train)
                 fits.append(f)
-                fits += [fit_effect(v, pred, w_train, meas) for v in f.effect.variants()]
+                fits += [fit_effect(v, pred, w_train, meas, n_train)
+                         for v in f.effect.variants()]
             for f in fits:
                 if why := f.effect.degenerate(ev):
                     tried.append(Candidate(cls.name, f.effect.values(), 0.0, 0.0, 0.0,
-                                           note=f"rejected: {why}"))
+                                           note=f"rejected: {why}", round=len(found)))
                     continue
-                cost_test = w_test.cost(meas.y_m - pred.with_candidate(f.effect))
+                cost_test = n_test.cost(w_test.whiten(meas.y_m - pred.with_candidate(f.effect)))
                 k = len(cls.free)
                 cand = Candidate(cls.name, f.effect.values(), deviance(cost0_train, f.cost),
                                  deviance(cost0_test, cost_test),
-                                 k * math.log(2 * len(w_test.f_hz)))
+                                 k * math.log(2 * len(w_test.f_hz)), sigma=f.sigma,
+                                 round=len(found))
                 tried.append(cand)
                 # Statistically real is not enough: it must also move the reading by a
                 # share of the sensor's own noise (a 70 pm drift over a night is not a
@@ -283,20 +325,19 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
                     continue
                 size = float(np.std(pred.physical_change(f.effect)[test]))
                 if size > _MIN_NOISE_SHARE * noise:
-                    passed.append((cand.deviance_test - cand.penalty, f, cand))
+                    passed.append((f, cand))
                 else:
                     cand.note = f"changes the reading by only {size * 1e9:.2g} nm rms"
-        chosen = None
-        for _, f, cand in sorted(passed, key=lambda p: -p[0]):
-            check = fit_effect(f.effect, pred, w_test, meas)
-            if _stable(f.effect, check.effect):
-                chosen = (f, cand, check)
-                break
-            cand.note = (f"held-out part disagrees: {check.effect.magnitude} "
-                         f"{getattr(check.effect, check.effect.magnitude):.3g}")
-        if chosen is None:
+        stable = _select(passed, functools.partial(_refit, pred=pred, w=w_test, meas=meas,
+                                                   nuis=n_test))
+        if not stable:
             break
-        f, cand, check = chosen
+        if len(stable) == 2:  # two families the log cannot tell apart: neither is taken
+            ambiguous = [stable[0][1], stable[1][1]]
+            for c in ambiguous:
+                c.note = "ambiguous: " + " / ".join(a.name for a in ambiguous)
+            break
+        f, cand, check = stable[0]
         cand.accepted = True
         # Refit on the whole log with the noise spectrum of what the effect leaves: the
         # spectrum fitted before it was found has soaked up part of a broadband effect
@@ -305,21 +346,58 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
         final = f
         for _ in range(2):
             w_whole.fit_noise(meas.y_m - pred.with_candidate(final.effect))
-            final = fit_effect(final.effect, pred, w_whole, meas)
+            final = fit_effect(final.effect, pred, w_whole, meas, nuisance.on(w_whole))
         # The noise model's 1-sigma misses systematic errors; how far the fits to the two
         # parts of the log, and to the whole, disagree is an honest floor under it.
         sigma = {k: math.hypot(v, 0.5 * f.effect.difference(check.effect, k),
                                final.effect.difference(f.effect, k))
                  for k, v in final.sigma.items()}
-        found.append(Found(final.effect, sigma, cand.deviance_test))
-        # The baseline again, with what was found: an effect not yet in the model biased it.
+        # The baseline again, with what was found: an effect not yet in the model biased it,
+        # and the effect's fit on that biased baseline is refined with it.
         plant = dataclasses.replace(meas.config.plant,
                                     effects=pred.effects.with_effect(final.effect))
-        pred, recal = _recalibrated(meas, plant, whole, actuator_excited)
+        pred, recal, nuisance = _recalibrated(meas, plant, whole, actuator_excited,
+                                              final.effect)
+        found.append(Found(getattr(pred.effects, final.effect.name).canonical(), sigma,
+                           cand.deviance_test))
+    rest = None
+    if not ambiguous:
+        w_end = make_whitener(meas, pred, test)
+        rest = leftover(meas, meas.y_m - pred.base.y_m, w_end, BANDS_HZ)
     return Diagnosis(found, pred.effects, gap_before, gap(meas, pred, whole), tried,
                      (float(meas.t_s[skip]), float(meas.t_s[-1])),
                      time.perf_counter() - start_wall,
-                     dataclasses.replace(pred.params, effects=EffectsParams()), recal)
+                     dataclasses.replace(pred.params, effects=EffectsParams()), recal,
+                     ambiguous, rest)
+
+
+def _refit(f: Fit, pred: Predictor, w: Whitener, meas: Measured, nuis: Projection) -> Fit:
+    return fit_effect(f.effect, pred, w, meas, nuis)
+
+
+def _select(passed: list[tuple[Fit, Candidate]], held_out: Callable[[Fit], Fit]
+            ) -> list[tuple[Fit, Candidate, Fit]]:
+    """The best candidate whose fit to the held-out part alone (`held_out`) agrees with it,
+    and the best of another family that also does if its evidence is within the ambiguity
+    margin: [] (none holds up), [best] or [best, rival] (the log cannot tell them apart)."""
+    stable: list[tuple[Fit, Candidate, Fit]] = []
+    for f, cand in sorted(passed, key=lambda p: -p[1].score):
+        if stable and (cand.name == stable[0][1].name or not _close(stable[0][1], cand)):
+            continue  # only a rival family within the margin needs checking
+        check = held_out(f)
+        if _stable(f.effect, check.effect):
+            stable.append((f, cand, check))
+            if len(stable) == 2:
+                break
+        else:
+            cand.note = (f"held-out part disagrees: {check.effect.magnitude} "
+                         f"{getattr(check.effect, check.effect.magnitude):.3g}")
+    return stable
+
+
+def _close(best: Candidate, other: Candidate) -> bool:
+    """Is `other`'s held-out evidence within the ambiguity margin of `best`'s?"""
+    return best.score - other.score < max(AMBIGUITY, AMBIGUITY_REL * best.score)
 
 
 def residual(meas: Measured, pred: Predictor, span: slice) -> np.ndarray:

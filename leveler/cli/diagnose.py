@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 from leveler.errors import LogError
 
 if TYPE_CHECKING:
-    from leveler.analysis.diagnose import Diagnosis
+    from leveler.analysis.diagnose import Candidate, Diagnosis
     from leveler.analysis.predict import Measured
     from leveler.sim.effects import Effect
     from leveler.sim.params import PlantParams
@@ -43,7 +43,8 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--report", default=None, metavar="DIR",
                    help="write residual_asd.png, timeseries.png and summary.md here")
     p.add_argument("--max-effects", type=int, default=4,
-                   help="stop after this many effects (default: %(default)s)")
+                   help="stop after this many effects (0: recalibrate and report what "
+                   "is left unexplained; default: %(default)s)")
     p.add_argument("--json", action="store_true",
                    help="print one JSON object: effects, gap_before, gap_after, model_out, "
                    "and every candidate tried with its scores")
@@ -63,7 +64,7 @@ def _toml_value(v: Any) -> str:
 def recalibrated_values(nominal: PlantParams, fitted: PlantParams) -> dict[str, dict[str, float]]:
     """The [plant.*] values recalibration changed, by section."""
     out: dict[str, dict[str, float]] = {}
-    for section in ("pendulum", "piezo", "thermal"):
+    for section in ("pendulum", "piezo", "thermal", "cooler"):
         a, b = getattr(nominal, section), getattr(fitted, section)
         changed = {f.name: getattr(b, f.name) for f in dataclasses.fields(b)
                    if getattr(a, f.name) != getattr(b, f.name)}
@@ -136,9 +137,14 @@ def result_json(d: Diagnosis, meas: Measured, model_out: str | None) -> dict[str
         "model_out": model_out,
         "analysed_s": list(d.span_s),
         "temperature_logged": meas.sig.temperature_k is not None,
-        "candidates": [{"name": c.name, "params": c.params,
-                        "deviance_train": c.deviance_train, "deviance_held_out": c.deviance_test,
-                        "penalty": c.penalty, "accepted": c.accepted, "note": c.note}
+        "ambiguous": [{"name": c.name, "params": c.params, "uncertainty": c.sigma,
+                       "deviance_held_out": c.deviance_test, "score": c.score}
+                      for c in d.ambiguous] or None,
+        "unexplained": None if d.leftover is None else d.leftover.as_dict(),
+        "candidates": [{"name": c.name, "round": c.round, "params": c.params,
+                        "uncertainty": c.sigma, "deviance_train": c.deviance_train,
+                        "deviance_held_out": c.deviance_test, "penalty": c.penalty,
+                        "accepted": c.accepted, "note": c.note}
                        for c in d.candidates],
         "wall_s": d.wall_s,
     }
@@ -149,22 +155,56 @@ def summary(d: Diagnosis, model_out: str | None) -> str:
     if d.recalibration is not None:
         lines.append("recalibrated within the model's stated tolerances:")
         lines += [f"  {line}" for line in d.recalibration.describe()]
-    if not d.effects:
-        return "\n".join([*lines, (
-            "no missing effect found: no candidate improved the held-out part of the log "
-            "beyond its complexity penalty; the model is left as it is.")])
     for f in d.effects:
         sig = ", ".join(f"{k} ± {v:.2g}" for k, v in f.sigma.items())
         lines.append(f"missing effect: {f.effect.describe()} ({sig})")
-    band = headline_band(d)
-    if band:
-        a, b = d.gap_before["band_rms_m"][band], d.gap_after["band_rms_m"][band]
-        lines.append(f"residual RMS {a * 1e9:.3g} nm -> {b * 1e9:.3g} nm ({a / b:.1f}x) in {band}")
-    lines.append(f"residual RMS overall {d.gap_before['rms_m'] * 1e9:.3g} nm -> "
-                 f"{d.gap_after['rms_m'] * 1e9:.3g} nm")
+    if d.ambiguous:
+        from leveler.analysis.diagnose import AMBIGUITY, AMBIGUITY_REL
+
+        a, b = d.ambiguous
+        lines.append(f"ambiguous between {_title(a)} and {_title(b)}: held-out evidence "
+                     f"{a.score:.4g} vs {b.score:.4g}, within the margin "
+                     f"({AMBIGUITY:g} or {AMBIGUITY_REL:.0%}); neither is added to the model")
+    elif not d.effects:
+        lines.append("no missing effect found: no candidate improved the held-out part of "
+                     "the log beyond its complexity penalty; the model is left as it is.")
+    if d.leftover is not None:
+        lines.append(d.leftover.describe())
+    if d.effects:
+        band = headline_band(d)
+        if band:
+            a, b = d.gap_before["band_rms_m"][band], d.gap_after["band_rms_m"][band]
+            lines.append(f"residual RMS {a * 1e9:.3g} nm -> {b * 1e9:.3g} nm ({a / b:.1f}x) "
+                         f"in {band}")
+        lines.append(f"residual RMS overall {d.gap_before['rms_m'] * 1e9:.3g} nm -> "
+                     f"{d.gap_after['rms_m'] * 1e9:.3g} nm")
     if model_out:
         lines.append(f"model updated: {model_out}")
     return "\n".join(lines)
+
+
+def _title(c: Candidate) -> str:
+    from leveler.sim.effects import EFFECTS
+
+    return EFFECTS[c.name](**c.params).describe()
+
+
+def ranked_table(d: Diagnosis, rows: int = 8) -> str:
+    """Markdown: the last round's candidates by held-out evidence, best first."""
+    last = max((c.round for c in d.candidates), default=0)
+    cands = sorted((c for c in d.candidates if c.round == last and c.penalty > 0),
+                   key=lambda c: -c.score)[:rows]
+    if not cands:
+        return "- none: no family had a guess to fit"
+    out = ["| rank | candidate | held-out 2 ln L gain | penalty | uncertainties | verdict |",
+           "|---|---|---|---|---|---|"]
+    for i, c in enumerate(cands, 1):
+        sig = ", ".join(f"{k} ± {v:.2g}" for k, v in c.sigma.items())
+        verdict = "accepted" if c.accepted else (c.note or (
+            "below its penalty" if c.score <= 0 else "not the best"))
+        out.append(f"| {i} | {_title(c)} | {c.deviance_test:.4g} | {c.penalty:.3g} | "
+                   f"{sig} | {verdict} |")
+    return "\n".join(out)
 
 
 def write_report(directory: Path, d: Diagnosis, meas: Measured, text: str,
@@ -220,6 +260,8 @@ def write_report(directory: Path, d: Diagnosis, meas: Measured, text: str,
         f"Model: {meas.model_source}. Analysed {d.span_s[0]:.0f}-{d.span_s[1]:.0f} s; "
         f"temperature {'used' if meas.sig.temperature_k is not None else 'not logged'}.\n\n"
         f"```\n{text}\n```\n\n## Effects found\n\n{found}\n\n"
+        f"## Candidates of the last round, ranked by held-out evidence\n\n"
+        f"{ranked_table(d)}\n\n"
         f"## Gap between model and measurement (residual RMS)\n\n"
         f"| band | nominal model [nm] | fitted model [nm] |\n|---|---|---|\n"
         f"| all | {_nm(d.gap_before['rms_m'])} | {_nm(d.gap_after['rms_m'])} |\n{rows}\n\n"

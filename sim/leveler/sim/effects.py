@@ -102,6 +102,10 @@ class Effect:
         """Where in frequency the effect mostly shows (for the report's headline band)."""
         return (1e-3, 1e-2)
 
+    def fit_bands_hz(self) -> tuple[float, ...]:
+        """Upper frequencies of coarse-to-fine fitting stages, () for a smooth cost."""
+        return ()
+
     # Stage hooks; each effect implements the ones of its stage.
     def apply(self, x: np.ndarray, sig: Signals) -> np.ndarray:
         raise TypeError(f"{self.name} is not an actuator or sensor effect")
@@ -133,13 +137,25 @@ class Effect:
 # -- tilt: extra platform tilt ---------------------------------------------------------------
 
 
-def waveform(shape: str, phase_frac: np.ndarray) -> np.ndarray:
-    """Unit peak-to-peak periodic shapes (zero mean) of the fraction of a period elapsed."""
-    if shape == "sawtooth":
-        return phase_frac - 0.5
-    if shape == "triangle":
-        return 0.5 - np.abs(2.0 * phase_frac - 1.0)
-    return 0.5 * np.sin(2.0 * np.pi * phase_frac)
+def _cycle_integral(shape: str, frac: np.ndarray) -> np.ndarray:
+    """Integral over [0, frac] of a unit peak-to-peak, zero-mean shape (frac in cycles):
+    zero again at the end of each cycle, so it is periodic."""
+    if shape == "sawtooth":  # x - 1/2
+        return 0.5 * frac * (frac - 1.0)
+    if shape == "triangle":  # 1/2 - |2x - 1|
+        return np.where(frac <= 0.5, frac * (frac - 0.5), -(frac - 1.0) * (frac - 0.5))
+    return (1.0 - np.cos(2.0 * np.pi * frac)) / (4.0 * np.pi)  # sin(2 pi x) / 2
+
+
+def waveform(shape: str, cycles: np.ndarray, hold_cycles: float) -> np.ndarray:
+    """The shape's mean over each sample's hold [cycles, cycles + hold_cycles]: what a
+    sampled plant sees of a continuous tilt. A point sample would put a sawtooth's drop on
+    whole samples, which makes its cost a staircase in the period and phase that no
+    gradient can climb."""
+    def integral(x: np.ndarray) -> np.ndarray:
+        return _cycle_integral(shape, np.mod(x, 1.0))
+
+    return (integral(cycles + hold_cycles) - integral(cycles)) / hold_cycles
 
 
 @dataclass(frozen=True, slots=True)
@@ -158,8 +174,8 @@ class PeriodicDisturbance(Effect):
     phase_s: float = 0.0  # time at which a period starts (the sawtooth's bottom)
 
     def tilt(self, sig: Signals, state: dict[str, Any] | None = None) -> np.ndarray:
-        frac = np.mod((sig.t_s - self.phase_s) / self.period_s, 1.0)
-        return self.peak_to_peak_rad * waveform(self.shape, frac)
+        cycles = (sig.t_s - self.phase_s) / self.period_s
+        return self.peak_to_peak_rad * waveform(self.shape, cycles, sig.dt_s / self.period_s)
 
     def scale(self, key: str) -> float:
         if key == "phase_s":
@@ -194,6 +210,13 @@ class PeriodicDisturbance(Effect):
 
     def band_hz(self) -> tuple[float, float]:
         return (0.5 / self.period_s, 5.0 / self.period_s)
+
+    def fit_bands_hz(self) -> tuple[float, ...]:
+        """A sawtooth's or triangle's harmonics make its cost a needle in the period: fit
+        the first 2, 10, 50 and 250 harmonics first (see diagnose's `fit_effect`)."""
+        if self.shape == "sine":
+            return ()
+        return tuple(k / self.period_s for k in (2.5, 10.5, 50.5, 250.5))
 
     @classmethod
     def guesses(cls, ev: Evidence) -> list[Effect]:

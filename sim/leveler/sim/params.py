@@ -169,6 +169,7 @@ class UncertaintyParams:
     natural_frequency_rel: float = non_negative(0.0)
     q_rel: float = non_negative(0.0)
     thermal_tilt_rel: float = non_negative(0.0)
+    cooler_amplitude_rel: float = non_negative(0.0)
 
     @property
     def sensor_path_rel(self) -> float:

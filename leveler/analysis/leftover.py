@@ -1,0 +1,85 @@
+"""What the search leaves: lines in the held-out residual that no effect family explained.
+
+When the search stops, the held-out part's residual is compared with its smooth noise
+spectrum bin by bin (`leveler.analysis.whittle`). A periodogram bin over a correct
+spectrum is exponentially distributed, so with n bins looked at, z > ln(n / alpha) happens
+by chance in a fraction alpha of logs: that is the threshold, the look-elsewhere cost
+included. Bins beyond it are structure the model misses and no family could name; saying
+so, with where it lives, is better than naming the nearest wrong family or nothing.
+
+Where it lives: the band, and the coherence of the residual with the piezo command and the
+logged temperature at those frequencies. In a closed loop any tilt the model misses is
+coherent with the command (the loop answers it), so a high command coherence alone does
+not point at the actuator; a high temperature coherence points at a thermal path.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.signal import coherence
+
+from leveler.analysis.predict import Measured
+from leveler.analysis.whittle import Whitener
+
+#: the chance that a log whose model is right is said to hold unexplained structure
+FALSE_ALARM = 0.01
+_FIRST_BIN = 4  # the lowest bins hold the offset and trends; the noise fit leaves them out
+
+
+@dataclass
+class Leftover:
+    """Significant lines left in the held-out residual."""
+
+    f_hz: list[float]  # the strongest, at most five
+    z: list[float]  # periodogram over the noise spectrum there
+    threshold: float
+    band: str
+    coherence_command: float | None
+    coherence_temperature: float | None
+
+    def describe(self) -> str:
+        lines = ", ".join(f"{f * 1e3:.4g} mHz (z {z:.0f})" for f, z in
+                          zip(self.f_hz, self.z, strict=True))
+        where = []
+        if self.coherence_command is not None:
+            where.append(f"coherence with the piezo command {self.coherence_command:.2f}")
+        if self.coherence_temperature is not None:
+            where.append(f"with the temperature {self.coherence_temperature:.2f}")
+        return (f"unexplained structure in {self.band}: {lines} stand above the noise "
+                f"(threshold z {self.threshold:.1f}, {FALSE_ALARM:.0%} false alarms); "
+                + "; ".join(where))
+
+    def as_dict(self) -> dict[str, object]:
+        return {"f_hz": self.f_hz, "z": self.z, "threshold": self.threshold,
+                "band": self.band, "coherence_command": self.coherence_command,
+                "coherence_temperature": self.coherence_temperature}
+
+
+def leftover(meas: Measured, residual: np.ndarray, w: Whitener,
+             bands_hz: dict[str, tuple[float, float]]) -> Leftover | None:
+    """Lines of `residual` (full length; `w` fitted to it on the held-out span) beyond the
+    look-elsewhere threshold, or None."""
+    z = w.zscores(residual)[_FIRST_BIN:]
+    f = w.f_hz[_FIRST_BIN:]
+    threshold = math.log(len(z) / FALSE_ALARM)
+    hits = np.flatnonzero(z > threshold)
+    if len(hits) == 0:
+        return None
+    top = hits[np.argsort(z[hits])[::-1][:5]]
+    f0 = float(f[top[0]])
+    band = next((name for name, (lo, hi) in bands_hz.items() if lo <= f0 < hi), "")
+    seg = residual[w.span]
+    fs = 1.0 / meas.dt_s
+    nper = max(len(seg) // 8, 16)
+
+    def coh(other: np.ndarray | None) -> float | None:
+        if other is None or np.ptp(other[w.span]) == 0:
+            return None
+        fc, c = coherence(seg, other[w.span], fs=fs, nperseg=nper)
+        return float(np.max(np.interp(f[top], fc, c)))
+
+    return Leftover([float(v) for v in f[top]], [float(v) for v in z[top]], threshold, band,
+                    coh(meas.u_v), coh(meas.sig.temperature_k))
