@@ -49,7 +49,7 @@ class Leftover:
         if self.coherence_temperature is not None:
             where.append(f"with the temperature {self.coherence_temperature:.2f}")
         return (f"unexplained structure in {self.band}: {lines} stand above the noise "
-                f"(threshold z {self.threshold:.1f}, {FALSE_ALARM:.0%} false alarms); "
+                f"(threshold z {self.threshold:.1f}, {FALSE_ALARM * 100:g} % false alarms); "
                 + "; ".join(where))
 
     def as_dict(self) -> dict[str, object]:

@@ -165,6 +165,8 @@ def summary(d: Diagnosis, model_out: str | None) -> str:
         lines.append(f"ambiguous between {_title(a)} and {_title(b)}: held-out evidence "
                      f"{a.score:.4g} vs {b.score:.4g}, within the margin "
                      f"({AMBIGUITY:g} or {AMBIGUITY_REL:.0%}); neither is added to the model")
+    elif not d.effects and not d.candidates:
+        lines.append("no effect was searched for; the model is left as it is.")
     elif not d.effects:
         lines.append("no missing effect found: no candidate improved the held-out part of "
                      "the log beyond its complexity penalty; the model is left as it is.")
