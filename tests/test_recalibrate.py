@@ -9,6 +9,7 @@ import dataclasses
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import REPO
 
@@ -129,13 +130,17 @@ def test_tolerances_are_checked_like_every_other_key() -> None:
 
 
 class _Spread:
-    """What a degenerate-fit check reads: how far the command moved."""
+    """What a degenerate-fit check reads: the command, a triangle `spread_v` peak to peak."""
 
     def __init__(self, spread_v: float) -> None:
         self.spread_v = spread_v
 
     def command_spread_v(self) -> float:
         return self.spread_v
+
+    def command_v(self) -> np.ndarray:
+        t = np.arange(0.0, 600.0, 0.1)
+        return 75.0 + self.spread_v / 2 * (2 * np.abs(2 * (t / 60.0 % 1) - 1) - 1)
 
 
 def test_degenerate_fits_are_no_evidence() -> None:
@@ -145,6 +150,11 @@ def test_degenerate_fits_are_no_evidence() -> None:
     assert ActuatorHysteresis(width_v=0.5, fraction=0.3).degenerate(ev) == ""  # type: ignore[arg-type]
     assert "not below the command's spread" in ActuatorHysteresis(
         width_v=16.5, fraction=0.3).degenerate(ev)  # type: ignore[arg-type]
+    # A play that needs a reversal of 2 x 4.5 V never turns on an 8 V triangle: what it
+    # adds is a gain and an offset (97 %); at 2 V it turns halfway (46 %) and is a loop.
+    assert "a gain, not hysteresis" in ActuatorHysteresis(
+        width_v=4.5, fraction=0.3).degenerate(ev)  # type: ignore[arg-type]
+    assert ActuatorHysteresis(width_v=2.0, fraction=0.3).degenerate(ev) == ""  # type: ignore[arg-type]
     assert "fraction = 1 sits at its bound" in ActuatorHysteresis(
         width_v=0.5, fraction=1.0).degenerate(ev)  # type: ignore[arg-type]
     assert "sits at its bound" in SensorGainError(gain_error=-0.5).degenerate(ev)  # type: ignore[arg-type]

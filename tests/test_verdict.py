@@ -83,8 +83,7 @@ def test_lines_no_effect_explains_are_unexplained_structure_where_they_live(
     out = json.loads(capsys.readouterr().out)
     assert out["effects"] == [] and out["ambiguous"] is None
     rest = out["unexplained"]
-    # The strongest lines are harmonics of 1/287 s (the loop suppresses the lowest most:
-    # the 5th, 17.4 mHz, leads), named with the band of the strongest.
+    # The strongest lines are harmonics of 1/287 s, named with the band of the strongest.
     assert rest is not None and len(rest["f_hz"]) == 5
     assert all(abs(f * 287.0 - round(f * 287.0)) < 0.05 for f in rest["f_hz"])
     assert rest["band"] == next(name for name, (lo, hi) in BANDS_HZ.items()

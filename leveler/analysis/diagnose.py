@@ -362,8 +362,9 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
                            cand.deviance_test))
     rest = None
     if not ambiguous:
-        w_end = make_whitener(meas, pred, test)
-        rest = leftover(meas, meas.y_m - pred.base.y_m, w_end, BANDS_HZ)
+        w_tr, w_te = make_whitener(meas, pred, train), make_whitener(meas, pred, test)
+        rest = leftover(meas, meas.y_m - pred.base.y_m, (w_tr, nuisance.on(w_tr)),
+                        (w_te, nuisance.on(w_te)), BANDS_HZ)
     return Diagnosis(found, pred.effects, gap_before, gap(meas, pred, whole), tried,
                      (float(meas.t_s[skip]), float(meas.t_s[-1])),
                      time.perf_counter() - start_wall,

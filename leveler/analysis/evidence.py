@@ -115,6 +115,10 @@ class Evidence:
         u = self.meas.u_v[self.w.span]
         return float(np.percentile(u, 95) - np.percentile(u, 5))
 
+    def command_v(self) -> np.ndarray:
+        """The actuator voltage over the span."""
+        return self.meas.u_v[self.w.span]
+
     def lattice(self) -> tuple[float, float] | None:
         """(step, offset) if the readings sit on a lattice clearly coarser than the model's
         ADC count; None otherwise. Seen in the changes between consecutive readings, which

@@ -4,8 +4,9 @@ When the search stops, the held-out part's residual is compared with its smooth 
 spectrum bin by bin (`leveler.analysis.whittle`). A periodogram bin over a correct
 spectrum is exponentially distributed, so with n bins looked at, z > ln(n / alpha) happens
 by chance in a fraction alpha of logs: that is the threshold, the look-elsewhere cost
-included. Bins beyond it are structure the model misses and no family could name; saying
-so, with where it lives, is better than naming the nearest wrong family or nothing.
+included. A line beyond it that the training part shows too is structure the model
+misses and no family could name; saying so, with where it lives, is better than naming the
+nearest wrong family or nothing.
 
 Where it lives: the band, and the coherence of the residual with the piezo command and the
 logged temperature at those frequencies. In a closed loop any tilt the model misses is
@@ -21,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import coherence
 
+from leveler.analysis.nuisance import Projection
 from leveler.analysis.predict import Measured
 from leveler.analysis.whittle import Whitener
 
@@ -58,19 +60,37 @@ class Leftover:
                 "coherence_temperature": self.coherence_temperature}
 
 
-def leftover(meas: Measured, residual: np.ndarray, w: Whitener,
+def _zscores(residual: np.ndarray, w: Whitener, nuis: Projection
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """(f, z) of the residual with the recalibrated knobs solved out, from bin _FIRST_BIN."""
+    nb = len(w.f_hz)
+    e = nuis.residual(w.whiten(residual))[1][:2 * nb]
+    return w.f_hz[_FIRST_BIN:], (e[:nb] ** 2 + e[nb:] ** 2)[_FIRST_BIN:]
+
+
+def leftover(meas: Measured, residual: np.ndarray, train: tuple[Whitener, Projection],
+             test: tuple[Whitener, Projection],
              bands_hz: dict[str, tuple[float, float]]) -> Leftover | None:
-    """Lines of `residual` (full length; `w` fitted to it on the held-out span) beyond the
-    look-elsewhere threshold, or None."""
-    z = w.zscores(residual)[_FIRST_BIN:]
-    f = w.f_hz[_FIRST_BIN:]
+    """Lines of `residual` (full length) beyond the look-elsewhere threshold in the
+    held-out part (`test`: its whitener, fitted to this residual, and the knobs) that stand
+    beyond it in the training part as well; None if there are none.
+
+    The knobs are solved out first, as in every comparison diagnose makes (the cooler's
+    level, above all: a cooler 8 % off in a log leaves its comb). A line must be seen in
+    both parts: a chance excursion is not, and a disturbance that is really there is."""
+    f, z = _zscores(residual, *test)
     threshold = math.log(len(z) / FALSE_ALARM)
-    hits = np.flatnonzero(z > threshold)
-    if len(hits) == 0:
+    f_tr, z_tr = _zscores(residual, *train)
+    seen = z_tr > math.log(len(z_tr) / FALSE_ALARM)
+    df = f[1] - f[0]
+    hits = [i for i in np.flatnonzero(z > threshold)
+            if np.any(seen & (np.abs(f_tr - f[i]) <= df))]
+    if not hits:
         return None
-    top = hits[np.argsort(z[hits])[::-1][:5]]
+    top = np.array(hits)[np.argsort(z[hits])[::-1][:5]]
     f0 = float(f[top[0]])
     band = next((name for name, (lo, hi) in bands_hz.items() if lo <= f0 < hi), "")
+    w = test[0]
     seg = residual[w.span]
     fs = 1.0 / meas.dt_s
     nper = max(len(seg) // 8, 16)

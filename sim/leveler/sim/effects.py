@@ -55,6 +55,7 @@ class Evidence(Protocol):
     def best_phase(self, template: Effect, phase_key: str, period_s: float,
                    amp_key: str, steps: int = 12) -> list[Effect]: ...
     def command_spread_v(self) -> float: ...
+    def command_v(self) -> np.ndarray: ...
     def lattice(self) -> tuple[float, float] | None: ...
     def noise_std_m(self) -> float: ...
     def natural_frequency_hz(self) -> float: ...
@@ -375,6 +376,10 @@ def play(u: np.ndarray, width_v: float) -> np.ndarray:
     return np.clip(u[0], lo, hi)
 
 
+#: a hysteresis whose addition to the stroke is more than this share a gain is a gain
+GAIN_LIKE = 0.9
+
+
 @dataclass(frozen=True, slots=True)
 class ActuatorHysteresis(Effect):
     """Piezo hysteresis as a Prandtl-Ishlinskii model with one play operator:
@@ -419,11 +424,21 @@ class ActuatorHysteresis(Effect):
 
     def degenerate(self, ev: Evidence) -> str:
         """A play wider than the command's reversals never turns: a gain or a lag, not a
-        loop."""
+        loop. One that turns too rarely does nearly the same: what it adds to the stroke
+        must not be mostly a straight line in the command (a gain and an offset)."""
         spread = ev.command_spread_v()
         if self.width_v >= spread:
             return (f"play width {self.width_v:.3g} V is not below the command's spread "
                     f"({spread:.3g} V): a gain or a lag, not hysteresis")
+        u = ev.command_v()
+        added = play(u, self.width_v) - u
+        a = np.column_stack([u, np.ones_like(u)])
+        coef, *_ = np.linalg.lstsq(a, added, rcond=None)
+        var = float(np.var(added))
+        share = 1.0 - float(np.var(added - a @ coef)) / var if var > 0 else 1.0
+        if share > GAIN_LIKE:
+            return (f"{share:.0%} of what the play adds is a gain and an offset of the "
+                    "command: a gain, not hysteresis")
         return Effect.degenerate(self, ev)
 
     def describe(self) -> str:
