@@ -1,0 +1,67 @@
+"""The recalibrated knobs solved with a candidate's size (leveler.analysis.nuisance): the
+algebra of the joint linear solve under Gaussian priors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from leveler.analysis.nuisance import Projection
+from leveler.analysis.whittle import ENBW_BINS
+
+ROOT = np.sqrt(ENBW_BINS / 2)
+
+
+def _problem(seed: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    g = rng.standard_normal((400, 2))
+    c = rng.standard_normal(400)
+    white = 0.7 * c + g @ np.array([0.3, -0.2]) + 0.01 * rng.standard_normal(400)
+    return g, c, white
+
+
+def test_without_knobs_it_is_the_candidate_alone() -> None:
+    _, c, white = _problem()
+    empty = Projection(np.zeros((0, 0)), np.zeros(0), np.zeros(0))
+    beta, e = empty.residual(white, c)
+    assert beta == pytest.approx(float(c @ white) / float(c @ c))
+    np.testing.assert_allclose(e, white - beta * c)
+    assert empty.cost(white) == pytest.approx(float(white @ white))
+
+
+def test_loose_priors_free_the_knobs_and_tight_ones_pin_them() -> None:
+    g, c, white = _problem()
+    loose = Projection(g, ROOT / np.array([1e6, 1e6]), np.zeros(2))  # sigma 1e6: free
+    beta, e = loose.residual(white, c)
+    full, *_ = np.linalg.lstsq(np.column_stack([c, g]), white, rcond=None)
+    assert beta == pytest.approx(full[0], rel=1e-6)  # the joint least squares
+    assert float(e @ e) < 0.05  # only the 1 % noise is left
+    tight = Projection(g, ROOT / np.array([1e-9, 1e-9]), np.zeros(2))  # sigma 1e-9: fixed
+    beta_t, _ = tight.residual(white, c)
+    assert beta_t == pytest.approx(float(c @ white) / float(c @ c), rel=1e-6)
+
+
+def test_the_prior_is_on_the_offset_from_nominal_not_from_the_recalibrated_value() -> None:
+    """A knob recalibrated to x = 2 sigma, with nothing in the data to move it: the
+    prior alone takes the total offset x + d (1 + x) back to nominal (its row zero)."""
+    sigma, x = 0.1, 0.2
+    p = np.array([ROOT * (1 + x) / sigma])
+    q = np.array([ROOT * x / sigma])
+    nuis = Projection(np.zeros((1, 1)), p, q)  # the data says nothing about this knob
+    e = nuis.residual(np.zeros(1))[1]
+    assert e[-1] == pytest.approx(0.0, abs=1e-12)
+    assert nuis.cost(np.zeros(1)) == pytest.approx(0.0, abs=1e-20)
+
+
+def test_restricted_to_bins_equals_the_problem_on_those_bins() -> None:
+    g, c, white = _problem(2)
+    p, q = ROOT / np.array([0.05, 0.2]), ROOT * np.array([0.5, -1.0])
+    keep = np.arange(400) < 150
+    beta_r, e_r = Projection(g, p, q).restricted(keep).residual(white[keep], c[keep])
+    beta_d, e_d = Projection(g[keep], p, q).residual(white[keep], c[keep])
+    assert beta_r == pytest.approx(beta_d)
+    np.testing.assert_allclose(e_r, e_d)
+    # Bounds on the candidate's size hold, and the knobs are solved again at the bound.
+    beta_b, e_b = Projection(g, p, q).residual(white, c, (-1.0, 0.1))
+    assert beta_b == 0.1
+    np.testing.assert_allclose(e_b, Projection(g, p, q).residual(white - 0.1 * c)[1])
