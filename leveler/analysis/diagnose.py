@@ -111,6 +111,8 @@ class Diagnosis:
     recalibration: Recalibration | None = None
     ambiguous: list[Candidate] = field(default_factory=list)  # the two it could not tell apart
     leftover: Leftover | None = None  # lines no family explained
+    # per band: residual power over the noise spectrum, nominal and final model (held out)
+    gap_normalised: dict[str, dict[str, float] | None] = field(default_factory=dict)
 
 
 def warmup_samples(meas: Measured, pred: Predictor) -> int:
@@ -360,16 +362,34 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
                                               final.effect)
         found.append(Found(getattr(pred.effects, final.effect.name).canonical(), sigma,
                            cand.deviance_test))
+    w_tr, w_te = make_whitener(meas, pred, train), make_whitener(meas, pred, test)
     rest = None
     if not ambiguous:
-        w_tr, w_te = make_whitener(meas, pred, train), make_whitener(meas, pred, test)
         rest = leftover(meas, meas.y_m - pred.base.y_m, (w_tr, nuisance.on(w_tr)),
                         (w_te, nuisance.on(w_te)), BANDS_HZ)
+    nominal = Predictor(meas.config.plant, meas)
     return Diagnosis(found, pred.effects, gap_before, gap(meas, pred, whole), tried,
                      (float(meas.t_s[skip]), float(meas.t_s[-1])),
                      time.perf_counter() - start_wall,
                      dataclasses.replace(pred.params, effects=EffectsParams()), recal,
-                     ambiguous, rest)
+                     ambiguous, rest,
+                     normalised_gap(w_te, meas.y_m - nominal.base.y_m, meas.y_m - pred.base.y_m))
+
+
+def normalised_gap(w: Whitener, before: np.ndarray, after: np.ndarray,
+                   bands_hz: dict[str, tuple[float, float]] = BANDS_HZ
+                   ) -> dict[str, dict[str, float] | None]:
+    """Per band, the mean of the residual's periodogram over the noise spectrum `w` holds
+    (fitted to what the final model leaves, on the held-out part), for the nominal model
+    and the final one: 1 is as good as the noise allows, and the number says how far a
+    model is from it in that band, which nm alone do not."""
+    out: dict[str, dict[str, float] | None] = {}
+    zb, za = w.zscores(before), w.zscores(after)
+    for name, (lo, hi) in bands_hz.items():
+        sel = (w.f_hz >= lo) & (w.f_hz < hi) & (np.arange(len(w.f_hz)) >= 4)
+        out[name] = (None if np.count_nonzero(sel) < 2 else
+                     {"before": float(np.mean(zb[sel])), "after": float(np.mean(za[sel]))})
+    return out
 
 
 def _refit(f: Fit, pred: Predictor, w: Whitener, meas: Measured, nuis: Projection) -> Fit:

@@ -134,6 +134,7 @@ def result_json(d: Diagnosis, meas: Measured, model_out: str | None) -> dict[str
         "recalibration_held": [] if d.recalibration is None else list(d.recalibration.held),
         "gap_before": _gap_dict(d.gap_before),
         "gap_after": _gap_dict(d.gap_after),
+        "gap_normalised": d.gap_normalised,
         "model_out": model_out,
         "analysed_s": list(d.span_s),
         "temperature_logged": meas.sig.temperature_k is not None,
@@ -180,6 +181,11 @@ def summary(d: Diagnosis, model_out: str | None) -> str:
                          f"in {band}")
         lines.append(f"residual RMS overall {d.gap_before['rms_m'] * 1e9:.3g} nm -> "
                      f"{d.gap_after['rms_m'] * 1e9:.3g} nm")
+        norm = [f"{band} {v['before']:.3g} -> {v['after']:.3g}"
+                for band, v in d.gap_normalised.items() if v]
+        if norm:
+            lines.append("residual power over the noise spectrum, held-out part (1 = noise): "
+                         + "; ".join(norm))
     if model_out:
         lines.append(f"model updated: {model_out}")
     return "\n".join(lines)
@@ -249,9 +255,14 @@ def write_report(directory: Path, d: Diagnosis, meas: Measured, text: str,
     bottom.legend()
     fig.savefig(directory / "timeseries.png", dpi=110)
 
+    def norm(band: str, key: str) -> str:
+        v = d.gap_normalised.get(band)
+        return "n/a" if not v else f"{v[key]:.3g}"
+
     rows = "\n".join(
         f"| {band} | {_nm(d.gap_before['band_rms_m'][band])} | "
-        f"{_nm(d.gap_after['band_rms_m'][band])} |" for band in BANDS_HZ)
+        f"{_nm(d.gap_after['band_rms_m'][band])} | {norm(band, 'before')} | "
+        f"{norm(band, 'after')} |" for band in BANDS_HZ)
     found = "\n".join(
         f"- **{f.effect.name}**: {f.effect.describe()}\n"
         + "".join(f"  - `{k}` = {getattr(f.effect, k):.6g} ± {v:.2g}\n"
@@ -265,8 +276,12 @@ def write_report(directory: Path, d: Diagnosis, meas: Measured, text: str,
         f"## Candidates of the last round, ranked by held-out evidence\n\n"
         f"{ranked_table(d)}\n\n"
         f"## Gap between model and measurement (residual RMS)\n\n"
-        f"| band | nominal model [nm] | fitted model [nm] |\n|---|---|---|\n"
-        f"| all | {_nm(d.gap_before['rms_m'])} | {_nm(d.gap_after['rms_m'])} |\n{rows}\n\n"
+        f"Power over the noise spectrum: the held-out part's residual periodogram over the "
+        f"noise spectrum fitted to what the fitted model leaves, mean per band (1 = noise).\n\n"
+        f"| band | nominal model [nm] | fitted model [nm] | nominal, power over noise | "
+        f"fitted, power over noise |\n|---|---|---|---|---|\n"
+        f"| all | {_nm(d.gap_before['rms_m'])} | {_nm(d.gap_after['rms_m'])} | | |\n"
+        f"{rows}\n\n"
         f"![residual ASD](residual_asd.png)\n\n![time series](timeseries.png)\n\n"
         + (f"Fitted model: `{model_out}`\n" if model_out else ""))
 
