@@ -294,7 +294,7 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
         cost0_train = n_train.cost(w_train.whiten(meas.y_m - pred.base.y_m))
         cost0_test = n_test.cost(w_test.whiten(meas.y_m - pred.base.y_m))
         ev = Evidence(meas, pred, w_train)
-        passed: list[tuple[float, Fit, Candidate]] = []
+        passed: list[tuple[Fit, Candidate]] = []
         for cls in EFFECTS.values():
             if getattr(pred.effects, cls.name) is not None:
                 continue
