@@ -44,7 +44,7 @@ from leveler.analysis.predict import (
     pendulum_filter,
     sensor_noise_m,
 )
-from leveler.analysis.recalibrate import Recalibration, recalibrate
+from leveler.analysis.recalibrate import Recalibration, apply, recalibrate
 from leveler.analysis.whittle import ENBW_BINS, Whitener, deviance
 from leveler.sim.effects import EFFECTS, Effect, EffectsParams
 from leveler.sim.params import PlantParams
@@ -363,6 +363,7 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
                                               final.effect)
         found.append(Found(getattr(pred.effects, final.effect.name).canonical(), sigma,
                            cand.deviance_test))
+    pred, recal, nuisance = _settled(meas, pred, recal, nuisance, whole)
     w_tr, w_te = make_whitener(meas, pred, train), make_whitener(meas, pred, test)
     rest = None
     if not ambiguous:
@@ -391,6 +392,25 @@ def normalised_gap(w: Whitener, before: np.ndarray, after: np.ndarray,
         out[name] = (None if np.count_nonzero(sel) < 2 else
                      {"before": float(np.mean(zb[sel])), "after": float(np.mean(za[sel]))})
     return out
+
+
+def _settled(meas: Measured, pred: Predictor, recal: Recalibration | None, nuisance: Nuisance,
+             whole: slice) -> tuple[Predictor, Recalibration | None, Nuisance]:
+    """The final model with its linear knobs where every comparison put them: solved on
+    all bins of the whole log (the recalibration left lines out; the cooler's level lives
+    in its lines). Without it the report's model and gap would be of a cooler level no
+    score was computed with."""
+    if recal is None or not nuisance.names:
+        return pred, recal, nuisance
+    w = make_whitener(meas, pred, whole)
+    d = nuisance.on(w).knobs(w.whiten(meas.y_m - pred.base.y_m))
+    params = apply(pred.params, nuisance.knobs, d)
+    offset = dict(recal.offset)
+    for k, dk in zip(nuisance.knobs, d, strict=True):
+        offset[k.name] = (1 + offset[k.name]) * (1 + float(dk)) - 1
+    recal = dataclasses.replace(recal, params=params, offset=offset)
+    pred = Predictor(params, meas)
+    return pred, recal, Nuisance(pred, recal, meas)
 
 
 def noise_share(w: Whitener, change: np.ndarray, power: float = 0.9) -> float:

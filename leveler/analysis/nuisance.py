@@ -34,6 +34,7 @@ class Nuisance:
 
     def __init__(self, pred: Predictor, recal: Recalibration | None, meas: Measured) -> None:
         ks = [k for k in recal.knobs if k.name in LINEAR] if recal is not None else []
+        self.knobs = ks
         self.names = tuple(k.name for k in ks)
         cols = []
         for i, k in enumerate(ks):
@@ -93,10 +94,16 @@ class Projection:
         """The same knobs on a subset of the whitened numbers (a coarse fit's low bins)."""
         return Projection(self.g[keep] if self.k else self.g, self.p, self.q)
 
+    def knobs(self, white: np.ndarray) -> np.ndarray:
+        """The knobs' relative changes d that best explain `white` under their priors."""
+        if self.k == 0:
+            return np.zeros(0)
+        return np.linalg.solve(self.gtg, self.g.T @ white - self.p * self.q)
+
     def _solve_d(self, white: np.ndarray) -> np.ndarray:
         if self.k == 0:
             return white
-        d = np.linalg.solve(self.gtg, self.g.T @ white - self.p * self.q)
+        d = self.knobs(white)
         return np.concatenate([white - self.g @ d, self.q + self.p * d])
 
     def cost(self, white: np.ndarray) -> float:
