@@ -286,6 +286,7 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
     ambiguous: list[Candidate] = []
     temperature = meas.sig.temperature_k is not None
     excited = temperature or actuator_excited
+    noise = sensor_noise_m(pred.params, meas.dt_s)
     while len(found) < max_effects:
         w_train = make_whitener(meas, pred, train)
         w_test = make_whitener(meas, pred, test)
@@ -320,17 +321,15 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
                                  round=len(found))
                 tried.append(cand)
                 # Statistically real is not enough: it must also move the reading by a
-                # share of the noise where it acts (a 70 pm drift over a night is not a
+                # share of the sensor's own noise (a 70 pm drift over a night is not a
                 # finding, however well the fit pins it down).
                 if cand.deviance_test <= cand.penalty:
                     continue
-                change = pred.physical_change(f.effect)
-                share = noise_share(w_test, change)
-                if share > _MIN_NOISE_SHARE:
+                size = float(np.std(pred.physical_change(f.effect)[test]))
+                if size > _MIN_NOISE_SHARE * noise:
                     passed.append((f, cand))
                 else:
-                    cand.note = (f"changes the reading by only {share:.2g} of the noise where "
-                                 f"it acts ({np.std(change[test]) * 1e9:.2g} nm rms)")
+                    cand.note = f"changes the reading by only {size * 1e9:.2g} nm rms"
         stable = _select(passed, functools.partial(_refit, pred=pred, w=w_test, meas=meas,
                                                    nuis=n_test))
         if not stable:
@@ -411,20 +410,6 @@ def _settled(meas: Measured, pred: Predictor, recal: Recalibration | None, nuisa
     recal = dataclasses.replace(recal, params=params, offset=offset)
     pred = Predictor(params, meas)
     return pred, recal, Nuisance(pred, recal, meas)
-
-
-def noise_share(w: Whitener, change: np.ndarray, power: float = 0.9) -> float:
-    """How big a change of the reading is against the noise where it acts: the rms of the
-    change over the rms of the noise spectrum (`w`'s) in the bins holding `power` of the
-    change's power. A narrow line of 0.5 nm rms is far above the noise in its few bins; a
-    slow drift of the same rms is lost in the drift noise of the lowest ones. (Against
-    the white noise of the whole band, a 44 ms actuator delay at 60 % of the loop's delay
-    margin, 0.55 nm rms near 1 Hz, was not a finding.)"""
-    p = w.periodogram(change)
-    order = np.argsort(p)[::-1]
-    keep = order[:int(np.searchsorted(np.cumsum(p[order]), power * np.sum(p))) + 1]
-    noise = float(np.sum(w.psd[keep]))
-    return math.sqrt(float(np.sum(p[keep])) / noise) if noise > 0 else math.inf
 
 
 def _refit(f: Fit, pred: Predictor, w: Whitener, meas: Measured, nuis: Projection) -> Fit:
