@@ -43,7 +43,7 @@ class Leftover:
     coherence_temperature: float | None
 
     def describe(self) -> str:
-        lines = ", ".join(f"{f * 1e3:.4g} mHz (z {z:.0f})" for f, z in
+        lines = ", ".join(f"{_hz(f)} (z {z:.0f})" for f, z in
                           zip(self.f_hz, self.z, strict=True))
         where = []
         if self.coherence_command is not None:
@@ -58,6 +58,10 @@ class Leftover:
         return {"f_hz": self.f_hz, "z": self.z, "threshold": self.threshold,
                 "band": self.band, "coherence_command": self.coherence_command,
                 "coherence_temperature": self.coherence_temperature}
+
+
+def _hz(f: float) -> str:
+    return f"{f:.4g} Hz" if f >= 1.0 else f"{f * 1e3:.4g} mHz"
 
 
 def _zscores(residual: np.ndarray, w: Whitener, nuis: Projection
