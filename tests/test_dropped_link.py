@@ -28,9 +28,11 @@ FAST_RECONNECT = {"engage_on_start = true": "engage_on_start = true\nreconnect_m
 
 
 def _wait_state(d: object, state: str, timeout_s: float) -> None:
+    """Wait for the daemon's state; on a timeout say what it last reported (a reconnect
+    that never resumed failed once in four CI runs, and nothing said why)."""
     deadline = time.monotonic() + timeout_s
-    while json.loads(d.cli("status", "--json").stdout)["state"] != state:  # type: ignore[attr-defined]
-        assert time.monotonic() < deadline, f"never {state}"
+    while (status := json.loads(d.cli("status", "--json").stdout))["state"] != state:  # type: ignore[attr-defined]
+        assert time.monotonic() < deadline, f"never {state}; last status: {status}"
         time.sleep(0.1)
 
 
