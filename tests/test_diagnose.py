@@ -206,6 +206,13 @@ def test_cli_json_contract_report_and_fitted_model(tmp_path: Path,
     # its first fit (drop 5 ms late), the recalibration put Q 14 % high to match it.
     assert abs(out["effects"][0]["params"]["phase_s"] - 31.0) < 0.002
     assert abs(out["recalibration"]["q"]["offset_rel"]) < 0.05
+    # Found, nothing is left unexplained or ambiguous, and the gap as residual power over
+    # the noise spectrum on the held-out part goes to about 1 in every band it had lifted
+    # (measured: 1-10 mHz 2.2e5 -> 1.07).
+    assert out["unexplained"] is None and out["ambiguous"] is None
+    lifted = {b: v for b, v in out["gap_normalised"].items() if v and v["before"] > 10}
+    assert "1-10 mHz" in lifted and lifted["1-10 mHz"]["before"] > 1e4
+    assert all(0.7 < v["after"] < 1.5 for v in lifted.values()), lifted
     assert out["model_out"] == str(tmp_path / "night.fitted.toml")
     for name in ("summary.md", "residual_asd.png", "timeseries.png"):
         assert (tmp_path / "rep" / name).stat().st_size > 1000
