@@ -106,7 +106,7 @@ def python_control_loop(cfg: Config) -> ct.InterconnectedSystem:
         target = min(max(u[0], pz.min_v), pz.max_v)
         dv = min(max(target - v, -max_dv), max_dv)
         v = v + dv
-        phi = tilt_per_v * (v - pz.ref_v) + u[1]
+        phi = tilt_per_v * (v - dv * abs(dv) / (2 * max_dv) - pz.ref_v) + u[1]  # slew_lag_v
         th, om = th - (phi - phi_before), om + c / j * (phi - phi_before)  # J phi''
         for _ in range(4):
             k1t, k1o = om, acc(th, om, phi)

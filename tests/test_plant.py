@@ -8,9 +8,10 @@ import control
 import numpy as np
 import pytest
 
+from leveler.analysis.predict import slewed
 from leveler.sim.params import PendulumParams, PlantParams, SensorParams
 from leveler.sim.pendulum import PendulumModel, equilibrium_angle
-from leveler.sim.plant import Plant
+from leveler.sim.plant import Plant, slew_lag_v
 from leveler.typed_config import ConfigError, build
 
 
@@ -236,3 +237,21 @@ def test_same_seed_same_realization_other_seed_differs() -> None:
 
     assert trace(5) == trace(5)
     assert trace(5) != trace(6)
+
+
+def test_a_slewing_piezo_is_felt_by_its_mean_over_the_step() -> None:
+    """The amplifier slews continuously: 5 V at 100 V/s takes half of a 0.1 s step, and the
+    pendulum feels the ramp's mean, 1.25 V short of the new voltage; a full step's worth
+    of slew is felt at half. Replay does the same with a log's commands, and a command
+    beyond one step's slew (a log of other origin) leaves the piezo on its way."""
+    assert slew_lag_v(5.0, 10.0) == pytest.approx(1.25)
+    assert slew_lag_v(-10.0, 10.0) == pytest.approx(-5.0)
+    v, lag = slewed(np.array([0.0, 0.0, 25.0, 25.0, 25.0]), 10.0)
+    assert v.tolist() == [0.0, 0.0, 10.0, 20.0, 25.0]
+    assert lag.tolist() == pytest.approx([0.0, 0.0, 5.0, 5.0, 1.25])
+    plant = Plant(build(PlantParams, QUIET), dt_s=0.1)
+    twin = Plant(build(PlantParams, QUIET), dt_s=0.1)
+    plant.command(plant.v_applied + 5.0)
+    plant.step()
+    twin.pendulum.step(twin.tilt_rad() + 3.75 * twin._tilt_per_v)  # 5 V less the 1.25 V lag
+    assert plant.pendulum.theta == pytest.approx(twin.pendulum.theta, rel=1e-12)

@@ -31,9 +31,13 @@ Loop = tuple[PlantParams, Suggestion]
 
 
 def quiet_plant() -> PlantParams:
-    """The default stand without disturbances, noise or drift, behind a 32-bit ADC."""
+    """The default stand without disturbances, noise or drift, behind a 32-bit ADC, and
+    with a piezo amplifier that slews 1e7 times faster: its ramp within a step
+    (`slew_lag_v`, quadratic in the change) is the one part of the plant no transfer
+    function holds, 5 % of a 1 V step's first sample at 100 V/s."""
     return build(PlantParams, {
         "platform": {"initial_tilt_rad": 0.0},
+        "piezo": {"slew_v_per_s": 1.0e9},
         "thermal": {"random_walk_k_per_sqrt_s": 0.0, "daily_amplitude_k": 0.0},
         "cooler": {"peak_to_peak_rad": 0.0},
         "sensor": {"noise_m_per_rthz": 0.0, "drift_m_per_sqrt_s": 0.0, "adc_bits": 32},

@@ -25,6 +25,7 @@ from leveler.settings import Config, load_config
 from leveler.sim.effects import Effect, EffectsParams, Signals
 from leveler.sim.params import PlantParams
 from leveler.sim.pendulum import discrete_matrices
+from leveler.sim.plant import slew_lag_v
 from leveler.typed_config import ConfigError, build
 
 _MAX_BAD_FRACTION = 0.05
@@ -151,6 +152,22 @@ def excitation_v(meas: Measured) -> np.ndarray | None:
     return out
 
 
+def slewed(u_v: np.ndarray, max_dv: float) -> tuple[np.ndarray, np.ndarray]:
+    """(the piezo's voltage at the end of each step, how far its mean over the step sits
+    below that) for logged commands `u_v`, the amplifier slewing max_dv per step, as the
+    simulated plant does. A leveler log holds what was applied (within the slew); a log of
+    other origin may ask for more in one step, and then the piezo is still on its way."""
+    du = np.diff(u_v, prepend=u_v[:1])
+    if np.all(np.abs(du) <= max_dv):
+        return u_v, slew_lag_v(du, max_dv)
+    v = np.empty(len(u_v))
+    prev = float(u_v[0])
+    for k, target in enumerate(u_v.tolist()):
+        prev += min(max(target - prev, -max_dv), max_dv)
+        v[k] = prev
+    return v, slew_lag_v(np.diff(v, prepend=v[:1]), max_dv)
+
+
 def pendulum_filter(params: PlantParams, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
     """theta/phi of the discretized linear pendulum (`PendulumModel`'s steps) as lfilter
     coefficients."""
@@ -183,6 +200,7 @@ class Predictor:
         self.static_m_per_rad = pe.sensor_arm_m * pe.amplification
         self._kv = pz.gain_m_per_v / params.platform.support_spacing_m
         self._ref = pz.ref_v
+        self._v, self._lag_v = slewed(meas.u_v, pz.slew_v_per_s * meas.dt_s)
         self._b, self._a = pendulum_filter(params, meas.dt_s)
         self._amp = pe.amplification
         self.nominal_tilt = self._nominal_tilt()
@@ -230,10 +248,10 @@ class Predictor:
         return self.pend(np.exp(-t / th.lag_s))
 
     def predict(self, effects: EffectsParams) -> Prediction:
-        sig, u = self.meas.sig, self.meas.u_v
+        sig, u = self.meas.sig, self._v
         for fx in effects.of("actuator"):
             u = fx.apply(u, sig)
-        phi_u = self._kv * (u - self._ref)
+        phi_u = self._kv * (u - self._lag_v - self._ref)
         phi = phi_u + self.nominal_tilt
         for fx in effects.of("tilt"):
             phi = phi + fx.tilt(sig)  # type: ignore[attr-defined]
