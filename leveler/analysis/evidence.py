@@ -121,24 +121,8 @@ class Evidence:
 
     def lattice(self) -> tuple[float, float] | None:
         """(step, offset) if the readings sit on a lattice clearly coarser than the model's
-        ADC count; None otherwise. Seen in the changes between consecutive readings, which
-        are whole multiples of the step (mostly one step) when the noise cannot dither."""
-        y = self.meas.y_m[self.w.span]
-        lsb = self.pred.params.sensor.lsb_m
-        d = np.abs(np.diff(y))
-        d = d[d > 0.5 * lsb]
-        if len(d) < 50:
-            return None
-        step = float(np.median(d[d <= np.percentile(d, 25)]))
-        if step < 3.0 * lsb:
-            return None
-        k = np.round(d / step)
-        if np.mean(np.abs(d - k * step) < max(1.01 * lsb, 0.05 * step)) < 0.9:
-            return None
-        step = float(np.mean(d[k == 1]))
-        phase = 2 * np.pi * y / step
-        offset = float(np.angle(np.mean(np.exp(1j * phase)))) / (2 * np.pi) * step
-        return step, offset
+        ADC count; None otherwise (`find_lattice`)."""
+        return find_lattice(self.meas.y_m[self.w.span], self.pred.params.sensor.lsb_m)
 
     def noise_std_m(self) -> float:
         """The model's white sensor noise per sample."""
@@ -147,3 +131,50 @@ class Evidence:
     def natural_frequency_hz(self) -> float:
         """The model pendulum's: a line near it means its frequency or Q is off."""
         return self.pred.params.pendulum.natural_frequency_hz
+
+
+#: Steps tried by the lattice scan: from 3 counts of the model's ADC (below that its own
+#: counts alias) up to 300, 1 % apart.
+_LATTICE_COUNTS = np.geomspace(3.0, 300.0, 464)
+#: Rayleigh statistic a step's coherence must beat: chance odds 1e-4 over the scan.
+_LATTICE_Z = math.log(len(_LATTICE_COUNTS) / 1e-4)
+
+
+def find_lattice(y_m: np.ndarray, lsb_m: float) -> tuple[float, float] | None:
+    """(step, offset) of a lattice the readings sit on, coarser than `lsb_m`; or None.
+
+    Seen in the changes between consecutive readings: on a lattice they are whole
+    multiples of its step, whatever the signal does between samples. A little analog noise
+    after a coarse converter, read by a finer one, blurs each change by a count or two of
+    the fine converter, so the step is found by phase coherence: for each trial step q the
+    changes larger than q/2 are mapped to phases 2 pi d/q, and a lattice makes them line
+    up (|mean of exp(i phase)| near 1) where smooth noise leaves them spread. The largest
+    step that lines them up in phase is the lattice (its halves and thirds line them up too).
+    """
+    d = np.abs(np.diff(y_m))
+    d = d[d > 1.5 * lsb_m]
+    if len(d) < 50:
+        return None
+    steps = lsb_m * _LATTICE_COUNTS
+    coherence = np.full(len(steps), -1.0)
+    for i, q in enumerate(steps):
+        sel = d[d > 0.5 * q]
+        if len(sel) < 50:
+            break
+        # The real part: changes of one step at a trial step of two line up in antiphase.
+        c = float(np.mean(np.cos(2 * np.pi * sel / q)))
+        if c > 0.3 and len(sel) * c * c > _LATTICE_Z:
+            coherence[i] = c
+    lined_up = np.flatnonzero(coherence > 0)
+    if not len(lined_up):
+        return None
+    # The coherence peak is broad (a trial step 10 % long still lines changes of one step
+    # up fairly well): the step is its top below the largest step that lines up, refined
+    # between grid points on the same changes.
+    near = np.flatnonzero((steps > steps[lined_up[-1]] / 1.3) & (coherence > 0))
+    best = float(steps[near[np.argmax(coherence[near])]])
+    sel = d[d > 0.5 * best]
+    trial = best * np.linspace(0.985, 1.015, 61)
+    step = float(trial[np.argmax([np.mean(np.cos(2 * np.pi * sel / q)) for q in trial])])
+    offset = float(np.angle(np.mean(np.exp(2j * np.pi * y_m / step)))) / (2 * np.pi) * step
+    return step, offset

@@ -1,0 +1,48 @@
+"""The lattice scan that proposes ADC quantization: a coarse converter seen through a finer
+one with a little analog noise between them (issue 17: the smallest-step estimate used to
+see one count of the fine converter and never tried quantization)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from leveler.analysis.evidence import find_lattice
+
+LSB_M = 20.0 / 2**16 / 2.0e5  # the default 16-bit, +-10 V ADC at 2e5 V/m: 1.53 nm
+
+
+def reading(rng: np.random.Generator, step_m: float | None, analog_counts: float,
+            n: int = 36_000) -> np.ndarray:
+    """A slow wander with white sensor noise, through an optional coarse converter (its
+    lattice offset at random), analog noise, and the fine ADC."""
+    x = np.cumsum(rng.normal(0.0, 0.3e-9, n)) + rng.normal(0.0, 1.1e-9, n)
+    if step_m is not None:
+        off = rng.uniform(0.0, step_m)
+        x = off + step_m * np.round((x - off) / step_m)
+    x = x + rng.normal(0.0, analog_counts * LSB_M, n)
+    return LSB_M * np.round(x / LSB_M)
+
+
+@pytest.mark.parametrize("step_m", [4.6e-9, 1.0e-8, 2.5e-8])
+def test_a_coarse_converter_behind_noise_and_a_fine_one_is_found(step_m: float) -> None:
+    rng = np.random.default_rng(17)
+    found = find_lattice(reading(rng, step_m, analog_counts=0.3), LSB_M)
+    assert found is not None
+    # A starting guess: within 5 % (the fine converter rounds each change by up to
+    # half a count, a third of the smallest step here); the fit refines it.
+    assert found[0] == pytest.approx(step_m, rel=0.05)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_no_lattice_in_a_fine_converter_alone(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    assert find_lattice(reading(rng, None, analog_counts=0.3), LSB_M) is None
+
+
+def test_a_quiet_reading_on_the_fine_lattice_is_not_a_coarse_one() -> None:
+    """Changes of one or two fine counts only: the scan starts at three counts, and its
+    multiples of the count do not line up (their phases spread over the circle)."""
+    rng = np.random.default_rng(5)
+    y = LSB_M * np.round(rng.normal(0.0, 1.2 * LSB_M, 36_000) / LSB_M)
+    assert find_lattice(y, LSB_M) is None
