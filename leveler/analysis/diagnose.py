@@ -5,7 +5,8 @@ First the model's calibrated numbers are fitted within their stated tolerances
 They stay free, under the same priors, in every fit below (`leveler.analysis.nuisance`):
 a candidate is scored only on what no in-tolerance knob explains. Then, per round:
 1. replay the log against the current model; the residual's noise spectrum is fitted on
-   a training part (first two thirds of the usable log) and on the held-out rest;
+   training blocks (the first two thirds of each part of the usable log: the loop open
+   under a modulation, the loop closed) and on the held-out rest of each (`split`);
 2. every effect not yet in the model reads its starting guesses off the residual
    (`leveler.analysis.evidence`) and is fitted on the training part by least squares on the
    whitened residual (`leveler.analysis.whittle`);
@@ -24,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import itertools
 import math
 import time
 from collections.abc import Callable
@@ -45,7 +47,7 @@ from leveler.analysis.predict import (
     sensor_noise_m,
 )
 from leveler.analysis.recalibrate import Recalibration, apply, recalibrate
-from leveler.analysis.whittle import ENBW_BINS, Whitener, deviance
+from leveler.analysis.whittle import ENBW_BINS, Blocks, Whitener, deviance
 from leveler.sim.effects import EFFECTS, Effect, EffectsParams
 from leveler.sim.params import PlantParams
 
@@ -139,7 +141,47 @@ def make_whitener(meas: Measured, pred: Predictor, span: slice) -> Whitener:
     return w
 
 
-def fit_effect(start: Effect, pred: Predictor, w: Whitener, meas: Measured,
+def make_blocks(meas: Measured, pred: Predictor, spans: list[slice]) -> Blocks:
+    return Blocks([make_whitener(meas, pred, s) for s in spans])
+
+
+#: A part of the log (the loop open, the loop closed) shorter than this is not split into
+#: its own training and held-out blocks but joined to its neighbour: too short to say
+#: anything about the slow effects on its own.
+MIN_PART_S = 1200.0
+
+
+def split(meas: Measured, skip: int) -> tuple[list[slice], list[slice]]:
+    """Training and held-out blocks: each part of the log where the loop stayed open (a
+    modulation) or closed, its first two thirds for training and the rest held out.
+
+    One held-out block at the end of the log would be the closed loop alone in a log that
+    starts with a modulation, and an actuator effect (hysteresis above all) shows mostly
+    while the modulation drives the piezo: fitted on it, it could only fail there."""
+    n = len(meas.y_m)
+    on = (np.zeros(n - skip, dtype=bool) if meas.engaged is None
+          else np.asarray(meas.engaged[skip:], dtype=bool))
+    edges = [0, *(np.flatnonzero(np.diff(on)) + 1).tolist(), n - skip]
+    runs = [[a, b, bool(on[a])] for a, b in itertools.pairwise(edges)]
+    # A run too short to stand alone (a fault, a hand on the knob) takes the state of
+    # the run before it (the first one, of the run after), and equal neighbours join.
+    short = [(b - a) * meas.dt_s < MIN_PART_S for a, b, _ in runs]
+    for i, run in enumerate(runs):
+        if short[i] and len(runs) > 1:
+            run[2] = runs[i - 1][2] if i else runs[1][2]
+    parts: list[list[int]] = []
+    for a, b, state in runs:
+        if parts and parts[-1][2] == state:
+            parts[-1][1] = b
+        else:
+            parts.append([a, b, state])
+    parts = [[a + skip, b + skip] for a, b, _ in parts]
+    cut = [a + 2 * (b - a) // 3 for a, b in parts]
+    return ([slice(a, c) for (a, _), c in zip(parts, cut, strict=True)],
+            [slice(c, b) for (_, b), c in zip(parts, cut, strict=True)])
+
+
+def fit_effect(start: Effect, pred: Predictor, w: Whitener | Blocks, meas: Measured,
                nuis: Projection) -> Fit:
     """Least squares on the whitened residual over the effect's free parameters, jointly
     with the recalibrated knobs (`leveler.analysis.nuisance`).
@@ -197,7 +239,7 @@ def fit_effect(start: Effect, pred: Predictor, w: Whitener, meas: Measured,
         x = np.array([best.x])
     box = ((lo - theta0) / scale, (hi - theta0) / scale)
     for f_max in start.fit_bands_hz() if keys else ():
-        keep = np.tile(w.f_hz < f_max, 2)
+        keep = w.below(f_max)
         proj = nuis.restricted(keep)
         x = least_squares(lambda v, p=proj, k=keep: solve(v, p, k)[0], bounds=box,
                           diff_step=1e-3, max_nfev=10 * (len(keys) + 1), x0=x).x
@@ -210,7 +252,7 @@ def fit_effect(start: Effect, pred: Predictor, w: Whitener, meas: Measured,
     return Fit(fitted, _sigma(fitted, pred, w, meas, e, nuis), float(e @ e))
 
 
-def _sigma(fx: Effect, pred: Predictor, w: Whitener, meas: Measured,
+def _sigma(fx: Effect, pred: Predictor, w: Whitener | Blocks, meas: Measured,
            e: np.ndarray, nuis: Projection) -> dict[str, float]:
     """1-sigma uncertainties of all free parameters from a finite-difference Jacobian."""
     keys = fx.free
@@ -276,8 +318,8 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
     pred = Predictor(meas.config.plant, meas)
     n = len(meas.y_m)
     skip = warmup_samples(meas, pred)
-    split = skip + 2 * (n - skip) // 3
-    train, test, whole = slice(skip, split), slice(split, n), slice(skip, n)
+    train, test = split(meas, skip)
+    whole = slice(skip, n)
     gap_before = gap(meas, pred, whole)
     actuator_excited = _actuator_excited(meas, pred, whole)
     pred, recal, nuisance = _recalibrated(meas, meas.config.plant, whole, actuator_excited)
@@ -288,8 +330,8 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
     excited = temperature or actuator_excited
     noise = sensor_noise_m(pred.params, meas.dt_s)
     while len(found) < max_effects:
-        w_train = make_whitener(meas, pred, train)
-        w_test = make_whitener(meas, pred, test)
+        w_train = make_blocks(meas, pred, train)
+        w_test = make_blocks(meas, pred, test)
         n_train, n_test = nuisance.on(w_train), nuisance.on(w_test)
         cost0_train = n_train.cost(w_train.whiten(meas.y_m - pred.base.y_m))
         cost0_test = n_test.cost(w_test.whiten(meas.y_m - pred.base.y_m))
@@ -325,7 +367,7 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
                 # finding, however well the fit pins it down).
                 if cand.deviance_test <= cand.penalty:
                     continue
-                size = float(np.std(pred.physical_change(f.effect)[test]))
+                size = float(np.std(pred.physical_change(f.effect)[w_test.index()]))
                 if size > _MIN_NOISE_SHARE * noise:
                     passed.append((f, cand))
                 else:
@@ -363,11 +405,12 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
         found.append(Found(getattr(pred.effects, final.effect.name).canonical(), sigma,
                            cand.deviance_test))
     pred, recal, nuisance = _settled(meas, pred, recal, nuisance, whole)
-    w_tr, w_te = make_whitener(meas, pred, train), make_whitener(meas, pred, test)
+    w_tr, w_te = make_blocks(meas, pred, train), make_blocks(meas, pred, test)
     rest = None
-    if not ambiguous:
-        rest = leftover(meas, meas.y_m - pred.base.y_m, (w_tr, nuisance.on(w_tr)),
-                        (w_te, nuisance.on(w_te)), BANDS_HZ)
+    if not ambiguous:  # lines are looked for on one frequency grid: the longest blocks
+        rest = leftover(meas, meas.y_m - pred.base.y_m,
+                        (w_tr.longest, nuisance.on(w_tr.longest)),
+                        (w_te.longest, nuisance.on(w_te.longest)), BANDS_HZ)
     nominal = Predictor(meas.config.plant, meas)
     return Diagnosis(found, pred.effects, gap_before, gap(meas, pred, whole), tried,
                      (float(meas.t_s[skip]), float(meas.t_s[-1])),
@@ -377,17 +420,18 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
                      normalised_gap(w_te, meas.y_m - nominal.base.y_m, meas.y_m - pred.base.y_m))
 
 
-def normalised_gap(w: Whitener, before: np.ndarray, after: np.ndarray,
+def normalised_gap(w: Blocks, before: np.ndarray, after: np.ndarray,
                    bands_hz: dict[str, tuple[float, float]] = BANDS_HZ
                    ) -> dict[str, dict[str, float] | None]:
     """Per band, the mean of the residual's periodogram over the noise spectrum `w` holds
-    (fitted to what the final model leaves, on the held-out part), for the nominal model
+    (fitted to what the final model leaves, on the held-out blocks), for the nominal model
     and the final one: 1 is as good as the noise allows, and the number says how far a
     model is from it in that band, which nm alone do not."""
     out: dict[str, dict[str, float] | None] = {}
     zb, za = w.zscores(before), w.zscores(after)
+    low = np.concatenate([np.arange(len(p.f_hz)) < 4 for p in w.parts])
     for name, (lo, hi) in bands_hz.items():
-        sel = (w.f_hz >= lo) & (w.f_hz < hi) & (np.arange(len(w.f_hz)) >= 4)
+        sel = (w.f_hz >= lo) & (w.f_hz < hi) & ~low
         out[name] = (None if np.count_nonzero(sel) < 2 else
                      {"before": float(np.mean(zb[sel])), "after": float(np.mean(za[sel]))})
     return out

@@ -14,31 +14,33 @@ from collections.abc import Sequence
 import numpy as np
 
 from leveler.analysis.predict import Measured, Predictor
-from leveler.analysis.whittle import Whitener
+from leveler.analysis.whittle import Blocks
 from leveler.sim.effects import Effect
 
 _LINE_Z = 12.0  # a line must stand this far (in ln p-value) above the noise spectrum
 
 
 class Evidence:
-    def __init__(self, meas: Measured, pred: Predictor, whitener: Whitener) -> None:
+    def __init__(self, meas: Measured, pred: Predictor, blocks: Blocks) -> None:
         self.meas = meas
         self.sig = meas.sig
         self.pred = pred
-        self.w = whitener
+        self.w = blocks
+        # Lines are read off the longest block alone: one frequency grid, the finest.
+        self.spec = blocks.longest
         self.residual = meas.y_m - pred.base.y_m
-        self.white = whitener.whiten(self.residual)
-        self._z = whitener.zscores(self.residual)
+        self.white = blocks.whiten(self.residual)
+        self._z = self.spec.zscores(self.residual)
 
     def fmin_hz(self) -> float:
         """Lowest frequency with at least eight cycles in the span: fewer do not make a
         periodic disturbance, and the lowest bins are where unmodeled drift lives."""
-        return 8.0 / (self.w.n * self.sig.dt_s)
+        return 8.0 / (self.spec.n * self.sig.dt_s)
 
     def peaks(self, fmin_hz: float, fmax_hz: float, most: int = 3) -> list[float]:
         """Frequencies of the strongest lines in [fmin, fmax], harmonics of a stronger line
         left out (a sawtooth is one disturbance, not ten)."""
-        f, z = self.w.f_hz, self._z
+        f, z = self.spec.f_hz, self._z
         df = f[1] - f[0]
         threshold = math.log(len(z)) + _LINE_Z
         idx = np.flatnonzero((f >= fmin_hz) & (f <= fmax_hz) & (z > threshold))
@@ -65,7 +67,7 @@ class Evidence:
         z = self._z
         for div in (5, 4, 3, 2):
             j = round(k / div)
-            if j < 4 or self.w.f_hz[j] < fmin_hz:
+            if j < 4 or self.spec.f_hz[j] < fmin_hz:
                 continue
             lo = j - 1
             peak = lo + int(np.argmax(z[lo:j + 2]))
@@ -79,7 +81,7 @@ class Evidence:
         """Line frequency between bins: the centroid of the power around the peak."""
         lo, hi = max(k - 2, 1), min(k + 3, len(self._z))
         p = self._z[lo:hi]
-        return float(np.sum(self.w.f_hz[lo:hi] * p) / np.sum(p))
+        return float(np.sum(self.spec.f_hz[lo:hi] * p) / np.sum(p))
 
     def contribution(self, fx: Effect) -> np.ndarray:
         return self.pred.with_candidate(fx) - self.pred.base.y_m
@@ -111,18 +113,18 @@ class Evidence:
         return self.best_linear(starts, amp_key, keep=1)
 
     def command_spread_v(self) -> float:
-        """How far the actuator voltage moved (5th to 95th percentile) over the span."""
-        u = self.meas.u_v[self.w.span]
+        """How far the actuator voltage moved (5th to 95th percentile) over the blocks."""
+        u = self.command_v()
         return float(np.percentile(u, 95) - np.percentile(u, 5))
 
     def command_v(self) -> np.ndarray:
-        """The actuator voltage over the span."""
-        return self.meas.u_v[self.w.span]
+        """The actuator voltage over the blocks."""
+        return self.meas.u_v[self.w.index()]
 
     def lattice(self) -> tuple[float, float] | None:
         """(step, offset) if the readings sit on a lattice clearly coarser than the model's
         ADC count; None otherwise (`find_lattice`)."""
-        return find_lattice(self.meas.y_m[self.w.span], self.pred.params.sensor.lsb_m)
+        return find_lattice(self.meas.y_m[self.w.index()], self.pred.params.sensor.lsb_m)
 
     def noise_std_m(self) -> float:
         """The model's white sensor noise per sample."""

@@ -140,6 +140,47 @@ class Whitener:
         """Periodogram over the fitted noise spectrum, per bin (about 1 where it fits)."""
         return self.periodogram(residual) / self.psd
 
+    def below(self, f_max_hz: float) -> np.ndarray:
+        """Which whitened numbers (real parts, then imaginary) are of bins below f_max."""
+        return np.tile(self.f_hz < f_max_hz, 2)
+
+
+class Blocks:
+    """Whiteners on several spans of one log, used as one: a training or held-out set
+    made of a block of each part of the log (its modulated, open-loop part and its
+    closed-loop part), so an effect is scored where it shows. Each block has its own
+    noise spectrum: the noise of an open and a closed loop differ."""
+
+    def __init__(self, parts: list[Whitener]) -> None:
+        self.parts = parts
+        self.f_hz = np.concatenate([p.f_hz for p in parts])
+        self.longest = max(parts, key=lambda p: p.n)
+
+    @property
+    def spans(self) -> list[slice]:
+        return [p.span for p in self.parts]
+
+    def index(self) -> np.ndarray:
+        """The samples the blocks cover, in order."""
+        return np.concatenate([np.arange(p.span.start, p.span.start + p.n) for p in self.parts])
+
+    def fit_noise(self, residual: np.ndarray) -> None:
+        for p in self.parts:
+            p.fit_noise(residual)
+
+    def whiten(self, residual: np.ndarray) -> np.ndarray:
+        return np.concatenate([p.whiten(residual) for p in self.parts])
+
+    def cost(self, residual: np.ndarray) -> float:
+        e = self.whiten(residual)
+        return float(e @ e)
+
+    def zscores(self, residual: np.ndarray) -> np.ndarray:
+        return np.concatenate([p.zscores(residual) for p in self.parts])
+
+    def below(self, f_max_hz: float) -> np.ndarray:
+        return np.concatenate([p.below(f_max_hz) for p in self.parts])
+
 
 def minimum_phase(gain: np.ndarray, n: int) -> np.ndarray:
     """The causal, minimum-phase filter with this gain on the rfft grid (real cepstrum).

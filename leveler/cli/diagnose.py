@@ -30,8 +30,9 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         "coherence with the actuator and the temperature, a lattice in the readings, "
         "trends), fit each named effect (periodic_disturbance, temperature_coupling, "
         "actuator_delay, actuator_hysteresis, extra_resonance, sensor_gain_error, "
-        "sensor_drift, adc_quantization) on the first two thirds of the log and keep it only "
-        "if it predicts the last third better than its complexity penalty; repeat while one "
+        "sensor_drift, adc_quantization) on the first two thirds of each part of the log (a "
+        "modulation with the loop open, the closed loop) and keep it only if it predicts the "
+        "held-out last third of each better than its complexity penalty; repeat while one "
         "does. Writes the updated model (a plain config: `leveler sim --config` and "
         "`leveler replay --model` use it) next to the log as LOG.fitted.toml. Says so, and "
         "writes nothing, when no effect is missing.")

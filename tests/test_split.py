@@ -1,0 +1,54 @@
+"""diagnose's training and held-out blocks (issue 17, part 4): every part of the log, the
+loop open under a modulation and the loop closed, is held out in its last third, so an
+actuator effect fitted on the modulation is also judged on it."""
+
+from __future__ import annotations
+
+import itertools
+from types import SimpleNamespace
+
+import numpy as np
+
+from leveler.analysis.diagnose import MIN_PART_S, split
+
+RATE_HZ = 10.0
+
+
+def _log(engaged: np.ndarray | None, n: int) -> SimpleNamespace:
+    return SimpleNamespace(y_m=np.zeros(n), engaged=engaged, dt_s=1.0 / RATE_HZ)
+
+
+def _samples(seconds: float) -> int:
+    return int(seconds * RATE_HZ)
+
+
+def test_a_modulated_log_is_held_out_in_both_its_parts() -> None:
+    n, opened, skip = _samples(3 * 3600), _samples(3600), _samples(300)
+    on = np.arange(n) >= opened
+    train, test = split(_log(on, n), skip)
+    first, second = 2 * (opened - skip) // 3, 2 * (n - opened) // 3
+    assert train == [slice(skip, skip + first), slice(opened, opened + second)]
+    assert test == [slice(skip + first, opened), slice(opened + second, n)]
+
+
+def test_a_log_in_one_state_or_of_unknown_state_is_split_two_to_one() -> None:
+    n, skip = _samples(2 * 3600), _samples(300)
+    cut = skip + 2 * (n - skip) // 3
+    for engaged in (None, np.ones(n, dtype=bool)):
+        assert split(_log(engaged, n), skip) == ([slice(skip, cut)], [slice(cut, n)])
+
+
+def test_parts_too_short_to_say_anything_alone_are_joined_to_a_neighbour() -> None:
+    """A 5 min opening in the middle (a fault, a hand on the knob) and a short closed
+    stretch at the start do not make blocks of their own; the blocks still tile the log."""
+    n, skip = _samples(3 * 3600), 0
+    on = np.ones(n, dtype=bool)
+    on[_samples(600):_samples(3600)] = False  # 10 min closed, then 50 min open
+    on[_samples(7200):_samples(7500)] = False  # 5 min open
+    train, test = split(_log(on, n), skip)
+    assert len(train) == len(test) == 2
+    edges = sorted([(s.start, s.stop) for s in train + test])
+    assert edges[0][0] == 0 and edges[-1][1] == n
+    assert all(a[1] == b[0] for a, b in itertools.pairwise(edges))
+    assert all((s.stop - s.start) / RATE_HZ >= MIN_PART_S / 3 for s in test)
+    assert train[0] == slice(0, 2 * _samples(3600) // 3)  # the short start joined the opening
