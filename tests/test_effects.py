@@ -130,3 +130,29 @@ def test_a_periodic_tilt_is_its_mean_over_each_hold_so_its_timing_is_continuous(
     moved = fx.replace(phase_s=17.0 + dt / 100).tilt(sig)
     assert np.max(np.abs(moved - base)) <= 1.0 / 100 + 1e-9
     assert np.max(np.abs(moved - base)) > 0
+
+
+def test_two_lags_in_series_follow_a_temperature_step_and_carry_across_blocks() -> None:
+    """A step through lags t1 and t2 in series rises as
+    1 - (t1 exp(-t/t1) - t2 exp(-t/t2)) / (t1 - t2): flat at first, unlike one lag, and
+    the simulator's blocks (state carried between calls) give the same as one call."""
+    dt, t1, t2 = 0.1, 600.0, 150.0
+    t = np.arange(0.0, 4000.0, dt)
+    temp = 295.0 + (t >= 100.0).astype(float)
+    fx = TemperatureCoupling(tilt_per_kelvin_rad_per_k=1.0, lag_s=t1, lag2_s=t2,
+                             reference_k=295.0)
+    got = fx.tilt(Signals(t, dt, temp))
+    s = np.clip(t - 100.0, 0.0, None)
+    want = np.where(t >= 100.0,
+                    1 - (t1 * np.exp(-s / t1) - t2 * np.exp(-s / t2)) / (t1 - t2), 0.0)
+    np.testing.assert_allclose(got, want, atol=2 * dt / t2)
+    assert got[t == 130.0] < 0.01  # a single 600 s lag is at 0.049 by then
+    state: dict = {}
+    halves = [fx.tilt(Signals(t[sl], dt, temp[sl]), state)
+              for sl in (slice(0, 20000), slice(20000, None))]
+    np.testing.assert_allclose(np.concatenate(halves), got, rtol=0, atol=1e-12)
+    # Fits count the second lag only when it is there; reports put the longer first.
+    assert fx.free == ("tilt_per_kelvin_rad_per_k", "lag_s", "lag2_s")
+    assert fx.replace(lag2_s=0.0).free == ("tilt_per_kelvin_rad_per_k", "lag_s")
+    flipped = fx.replace(lag_s=t2, lag2_s=t1).canonical()
+    assert (flipped.lag_s, flipped.lag2_s) == (t1, t2)

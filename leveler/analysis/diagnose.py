@@ -356,7 +356,7 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
                                            note=f"rejected: {why}", round=len(found)))
                     continue
                 cost_test = n_test.cost(w_test.whiten(meas.y_m - pred.with_candidate(f.effect)))
-                k = len(cls.free)
+                k = len(f.effect.free)
                 cand = Candidate(cls.name, f.effect.values(), deviance(cost0_train, f.cost),
                                  deviance(cost0_test, cost_test),
                                  k * math.log(2 * len(w_test.f_hz)), sigma=f.sigma,

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar, Literal, Protocol
 
 import numpy as np
-from scipy.signal import cont2discrete, lfilter
+from scipy.signal import cont2discrete, lfilter, lfilter_zi
 from scipy.special import ndtr
 
 from leveler.typed_config import non_negative, positive
@@ -247,59 +247,85 @@ class PeriodicDisturbance(Effect):
 
 @dataclass(frozen=True, slots=True)
 class TemperatureCoupling(Effect):
-    """Tilt following the temperature through a lag: the other axis, a bending table top."""
+    """Tilt following the temperature through a lag: the other axis, a bending table top.
+
+    `lag2_s` > 0 adds a second lag in series: heat that reaches the bending part through
+    a slow body (a granite top, a frame) first, whose response a single lag cannot hold
+    (it starts flat, then rises)."""
 
     name: ClassVar[str] = "temperature_coupling"
     stage: ClassVar[Stage] = "tilt"
     title: ClassVar[str] = "temperature coupling"
-    free: ClassVar[tuple[str, ...]] = ("tilt_per_kelvin_rad_per_k", "lag_s")
     magnitude: ClassVar[str] = "tilt_per_kelvin_rad_per_k"
     needs_temperature: ClassVar[bool] = True
 
     tilt_per_kelvin_rad_per_k: float = 0.0
     lag_s: float = non_negative(600.0)
     reference_k: float = positive(295.15)
+    lag2_s: float = non_negative(0.0)
+
+    @property
+    def free(self) -> tuple[str, ...]:  # type: ignore[override]
+        keys = ("tilt_per_kelvin_rad_per_k", "lag_s")
+        return (*keys, "lag2_s") if self.lag2_s > 0 else keys
 
     def tilt(self, sig: Signals, state: dict[str, Any] | None = None) -> np.ndarray:
-        """First-order lag of the temperature, exact for a signal held over each sample;
-        `state` carries the filter across the simulator's blocks."""
+        """First-order lags of the temperature, each exact for a signal held over each
+        sample; `state` carries the filter across the simulator's blocks."""
         temp = sig.temperature_k
         if temp is None:
             raise ValueError("temperature_coupling needs a temperature series")
-        if self.lag_s == 0:
-            lagged = temp
-        else:
-            a = math.exp(-sig.dt_s / self.lag_s)
-            zi = None if state is None else state.get("zi")
-            if zi is None:
-                zi = np.array([a * temp[0]])  # settled at the first temperature
-            lagged, zi = lfilter([1 - a], [1, -a], temp, zi=zi)
-            if state is not None:
-                state["zi"] = zi
+        lags = [t for t in (self.lag_s, self.lag2_s) if t > 0]
+        if not lags:
+            return self.tilt_per_kelvin_rad_per_k * (temp - self.reference_k)
+        b, a = np.array([1.0]), np.array([1.0])
+        for lag in lags:
+            k = math.exp(-sig.dt_s / lag)
+            b, a = np.convolve(b, [1 - k]), np.convolve(a, [1, -k])
+        zi = None if state is None else state.get("zi")
+        if zi is None:
+            zi = lfilter_zi(b, a) * temp[0]  # settled at the first temperature
+        lagged, zi = lfilter(b, a, temp, zi=zi)
+        if state is not None:
+            state["zi"] = zi
         return self.tilt_per_kelvin_rad_per_k * (lagged - self.reference_k)
 
     def scale(self, key: str) -> float:
-        if key == "lag_s":
-            return max(self.lag_s, 60.0) / 10
+        if key in ("lag_s", "lag2_s"):
+            return max(getattr(self, key), 60.0) / 10
         return abs(self.tilt_per_kelvin_rad_per_k) or 1e-7
 
     def bounds(self, key: str) -> tuple[float, float]:
-        return (1.0, 1e6) if key == "lag_s" else (-math.inf, math.inf)
+        return (1.0, 1e6) if key in ("lag_s", "lag2_s") else (-math.inf, math.inf)
+
+    def canonical(self) -> Effect:
+        """Two lags in series commute: the longer is reported first."""
+        if self.lag2_s > self.lag_s:
+            return self.replace(lag_s=self.lag2_s, lag2_s=self.lag_s)
+        return self
 
     def describe(self) -> str:
+        lags = (f"lags of {self.lag_s:.4g} s and {self.lag2_s:.4g} s in series"
+                if self.lag2_s > 0 else f"a {self.lag_s:.4g} s lag")
         return (f"temperature coupling, {self.tilt_per_kelvin_rad_per_k * 1e6:.3g} urad/K "
-                f"through a {self.lag_s:.4g} s lag")
+                f"through {lags}")
 
     def band_hz(self) -> tuple[float, float]:
         return (1e-4, 1e-3)
 
     @classmethod
     def guesses(cls, ev: Evidence) -> list[Effect]:
+        """The best single lag and the best pair: which fits is the held-out part's call,
+        the pair paying for its extra parameter."""
         if ev.sig.temperature_k is None:
             return []
         ref = float(np.mean(ev.sig.temperature_k))
-        starts = [cls(lag_s=lag, reference_k=ref) for lag in (120.0, 600.0, 1800.0, 5400.0)]
-        return ev.best_linear(starts, "tilt_per_kelvin_rad_per_k", keep=1)
+        lags = (120.0, 600.0, 1800.0, 5400.0)
+        single = [cls(lag_s=lag, reference_k=ref) for lag in lags]
+        pairs = [cls(lag_s=b, lag2_s=a, reference_k=ref)
+                 for i, a in enumerate(lags) for b in lags[i + 1:]]
+        return (ev.best_linear(single, "tilt_per_kelvin_rad_per_k", keep=1)
+                + ev.best_linear(pairs, "tilt_per_kelvin_rad_per_k", keep=1))
 
 
 # -- actuator: volts commanded -> volts that move the piezo ----------------------------------
