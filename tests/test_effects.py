@@ -156,3 +156,32 @@ def test_two_lags_in_series_follow_a_temperature_step_and_carry_across_blocks() 
     assert fx.replace(lag2_s=0.0).free == ("tilt_per_kelvin_rad_per_k", "lag_s")
     flipped = fx.replace(lag_s=t2, lag2_s=t1).canonical()
     assert (flipped.lag_s, flipped.lag2_s) == (t1, t2)
+
+
+def test_a_coupling_whose_lags_had_not_settled_is_replayed_from_its_fitted_start(
+        nominal: tuple[Config, str], tmp_path: Path) -> None:
+    """A log that starts while the temperature moves holds a coupling's lags away from the
+    first temperature; replay fits their start (as it does the table's thermal lag), so
+    the true effect still leaves only noise. The log is cut out of a longer run at 40 min,
+    where the 1500 s and 400 s lags trail a temperature that moved."""
+    cfg, text = nominal
+    fx = TemperatureCoupling(tilt_per_kelvin_rad_per_k=3e-5, lag_s=1500.0, lag2_s=400.0)
+    log = tmp_path / "m.mcap"
+    make_measured(log, cfg, text, fx, duration_s=5400.0, seed=6, dither_v=4.0,
+                  dither_period_s=40.0)
+    full = load_measured(log)
+    cut = int(2400.0 / full.dt_s)
+    sig = full.sig
+    meas = dataclasses.replace(
+        full, sig=Signals(sig.t_s[cut:], sig.dt_s, sig.temperature_k[cut:]),
+        u_v=full.u_v[cut:], y_m=full.y_m[cut:],
+        engaged=None if full.engaged is None else full.engaged[cut:],
+        config=_with(cfg, fx))
+    settled = fx.tilt(Signals(sig.t_s[cut:], sig.dt_s, sig.temperature_k[cut:]))
+    trailing = fx.tilt(sig)[cut:]
+    assert np.max(np.abs(trailing - settled)) > 3e-8  # the lags had not settled: 30 nrad
+    span = slice(600, None)
+    rms = gap(meas, Predictor(meas.config.plant, meas), span)["rms_m"]
+    noise = cfg.plant.sensor.noise_m_per_rthz * np.sqrt(0.5 * cfg.loop.rate_hz)
+    floor = np.hypot(noise, cfg.plant.sensor.lsb_m / np.sqrt(12))
+    assert rms < 1.5 * floor, (rms, floor)

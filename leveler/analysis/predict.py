@@ -258,18 +258,22 @@ class Predictor:
         x = self.pend(phi)
         for fx in effects.of("response"):
             x = x + fx.response(phi_u, self.static_m_per_rad, sig)  # type: ignore[attr-defined]
-        if self._transient is not None:
-            x = x + self._start_state(self._sensor(x, effects)) * self._transient
+        shapes = [] if self._transient is None else [self._transient]
+        shapes += [self.pend(s) for fx in effects.of("tilt") for s in fx.start_shapes(sig)]
+        if shapes:
+            x = x + self._start_state(self._sensor(x, effects), np.column_stack(shapes))
         return Prediction(x, self._sensor(x, effects), phi_u)
 
-    def _start_state(self, y_pred: np.ndarray) -> float:
-        """The thermal lag's unknown state at the log's start, fitted by least squares (with
-        an offset) to what the whole prediction, sensor effects included, leaves: it decays
-        within a few lags, and fitted once here it cannot pass for a drift later on."""
+    def _start_state(self, y_pred: np.ndarray, shapes: np.ndarray) -> np.ndarray:
+        """The lags' unknown states at the log's start (the table's thermal lag, an
+        effect's), fitted by least squares (with an offset) to what the whole prediction,
+        sensor effects included, leaves: they decay within a few lags, and fitted once here
+        they cannot pass for a drift later on. A log that starts out of equilibrium would
+        otherwise hand a temperature coupling a transient it cannot follow."""
         r = self.meas.y_m - y_pred
-        a = np.column_stack([np.ones_like(r), self._transient])
+        a = np.column_stack([np.ones_like(r), shapes])
         coef, *_ = np.linalg.lstsq(a, r, rcond=None)
-        return float(coef[1])
+        return shapes @ coef[1:]
 
     def _sensor(self, x: np.ndarray, effects: EffectsParams) -> np.ndarray:
         """The sensor stage, fed the displacement aligned with the readings: the table's
@@ -286,10 +290,12 @@ class Predictor:
         """Predicted reading of the base effects plus (or with this one replaced by) `fx`.
 
         Tilt and response effects add linearly to the cached base; actuator effects are
-        non-linear (hysteresis) and replay in full.
+        non-linear (hysteresis) and, like an effect with a start state to fit, replay in
+        full.
         """
         merged = self.effects.with_effect(fx)
-        if fx.stage == "actuator" or getattr(self.effects, fx.name) is not None:
+        if (fx.stage == "actuator" or getattr(self.effects, fx.name) is not None
+                or fx.start_shapes(self.meas.sig)):  # its start is fitted with the others'
             return self.predict(merged).y_m
         x = self.base.x_m
         if fx.stage == "tilt":

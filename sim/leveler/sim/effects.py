@@ -124,6 +124,11 @@ class Effect:
         """Other forms worth fitting that a fitted one implies (other waveform shapes)."""
         return []
 
+    def start_shapes(self, sig: Signals) -> list[np.ndarray]:
+        """Tilt shapes of the effect's unknown state at the log's start (a lag that had not
+        settled): a replay fits their sizes, as it does the thermal lag's."""
+        return []
+
     def degenerate(self, ev: Evidence) -> str:
         """Why this fit is no evidence for its effect ("" if it is): a parameter pinned at
         its bound means the data wanted more than the form allows, i.e. something else."""
@@ -289,6 +294,11 @@ class TemperatureCoupling(Effect):
         if state is not None:
             state["zi"] = zi
         return self.tilt_per_kelvin_rad_per_k * (lagged - self.reference_k)
+
+    def start_shapes(self, sig: Signals) -> list[np.ndarray]:
+        """A lag's state decays as exp(-t / lag); two in series span both decays."""
+        t = sig.t_s - sig.t_s[0]
+        return [np.exp(-t / lag) for lag in (self.lag_s, self.lag2_s) if lag > 0]
 
     def scale(self, key: str) -> float:
         if key in ("lag_s", "lag2_s"):
