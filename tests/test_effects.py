@@ -185,3 +185,16 @@ def test_a_coupling_whose_lags_had_not_settled_is_replayed_from_its_fitted_start
     noise = cfg.plant.sensor.noise_m_per_rthz * np.sqrt(0.5 * cfg.loop.rate_hz)
     floor = np.hypot(noise, cfg.plant.sensor.lsb_m / np.sqrt(12))
     assert rms < 1.5 * floor, (rms, floor)
+
+
+def test_two_equal_lags_keep_two_start_shapes() -> None:
+    """Two lags in series start from a two-dimensional state; as the lags meet, the plain
+    decays exp(-t/t1), exp(-t/t2) become one, the basis used keeps rank two."""
+    dt = 1.0
+    t = np.arange(0.0, 3600.0, dt)
+    for t2 in (800.0, 800.0 * (1 + 1e-9), 799.0):
+        fx = TemperatureCoupling(tilt_per_kelvin_rad_per_k=1.0, lag_s=800.0, lag2_s=t2)
+        shapes = np.column_stack(fx.start_shapes(Signals(t, dt)))
+        assert np.linalg.matrix_rank(shapes / np.linalg.norm(shapes, axis=0)) == 2
+    one = TemperatureCoupling(tilt_per_kelvin_rad_per_k=1.0, lag_s=800.0)
+    assert len(one.start_shapes(Signals(t, dt))) == 1

@@ -296,9 +296,20 @@ class TemperatureCoupling(Effect):
         return self.tilt_per_kelvin_rad_per_k * (lagged - self.reference_k)
 
     def start_shapes(self, sig: Signals) -> list[np.ndarray]:
-        """A lag's state decays as exp(-t / lag); two in series span both decays."""
+        """A lag's state decays as exp(-t / lag). Two in series span exp(-t / lag) and
+        the divided difference of the two decays, which stays a second shape (t exp(-t /
+        lag)) as the lags meet, where the two plain decays would become one."""
         t = sig.t_s - sig.t_s[0]
-        return [np.exp(-t / lag) for lag in (self.lag_s, self.lag2_s) if lag > 0]
+        lags = [lag for lag in (self.lag_s, self.lag2_s) if lag > 0]
+        if not lags:
+            return []
+        first = np.exp(-t / lags[0])
+        if len(lags) == 1:
+            return [first]
+        r1, r2 = 1 / lags[0], 1 / lags[1]
+        if math.isclose(r1, r2, rel_tol=1e-6):
+            return [first, t * first]
+        return [first, (first - np.exp(-t * r2)) / (r2 - r1)]
 
     def scale(self, key: str) -> float:
         if key in ("lag_s", "lag2_s"):
