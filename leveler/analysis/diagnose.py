@@ -378,16 +378,27 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
                                  k * math.log(2 * len(w_test.f_hz)), sigma=f.sigma,
                                  round=len(found))
                 tried.append(cand)
-                # Statistically real is not enough: it must also move the reading by a
-                # share of the sensor's own noise (a 70 pm drift over a night is not a
-                # finding, however well the fit pins it down).
                 if cand.deviance_test <= cand.penalty:
+                    continue
+                # Statistically real is not enough where the noise level is a guess: in
+                # the lowest bins of each block (extrapolated, not fitted) an effect must
+                # also move the reading by a share of the sensor's own noise (a 70 pm
+                # drift over a night is not a finding, however well a fit pins it down).
+                # A delay that moves it by half a nanometre at the modulation's lines and
+                # the resonance, where the noise is fitted, is judged by its evidence.
+                fitted = w_test.fitted()
+                n_fit = n_test.restricted(fitted)
+                white0 = w_test.whiten(meas.y_m - pred.base.y_m)[fitted]
+                white1 = w_test.whiten(meas.y_m - pred.with_candidate(f.effect))[fitted]
+                if deviance(n_fit.cost(white0), n_fit.cost(white1)) > cand.penalty:
+                    passed.append((f, cand))
                     continue
                 size = float(np.std(pred.physical_change(f.effect)[w_test.index()]))
                 if size > _MIN_NOISE_SHARE * noise:
                     passed.append((f, cand))
                 else:
-                    cand.note = f"changes the reading by only {size * 1e9:.2g} nm rms"
+                    cand.note = (f"changes the reading by only {size * 1e9:.2g} nm rms, its "
+                                 "evidence in the lowest bins, where the noise is a guess")
         stable = _select(passed, functools.partial(_refit, pred=pred, w=w_test, meas=meas,
                                                    nuis=n_test))
         if not stable:
@@ -445,7 +456,7 @@ def normalised_gap(w: Blocks, before: np.ndarray, after: np.ndarray,
     model is from it in that band, which nm alone do not."""
     out: dict[str, dict[str, float] | None] = {}
     zb, za = w.zscores(before), w.zscores(after)
-    low = np.concatenate([np.arange(len(p.f_hz)) < 4 for p in w.parts])
+    low = np.concatenate([p.extrapolated() for p in w.parts])
     for name, (lo, hi) in bands_hz.items():
         sel = (w.f_hz >= lo) & (w.f_hz < hi) & ~low
         out[name] = (None if np.count_nonzero(sel) < 2 else

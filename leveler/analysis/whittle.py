@@ -24,6 +24,9 @@ ENBW_BINS = 1.5
 # A periodogram bin is exponentially distributed about the spectrum: exceeding it 12-fold
 # happens by chance once in 160,000 bins.
 _OUTLIER_Z = 12.0
+#: The lowest bins of a span are left out of the noise fit and get its extrapolation: a
+#: trend (a drift) lives there, and fitted to them the 1/f^4 term would soak it up.
+EXTRAPOLATED_BINS = 4
 
 
 def hann(n: int) -> np.ndarray:
@@ -115,9 +118,7 @@ class Whitener:
     def fit_noise(self, residual: np.ndarray) -> None:
         """Fit the noise spectrum to this residual; bin 0 (the mean) carries nothing."""
         p = self.periodogram(residual)
-        # The lowest bins are left out of the fit and get the fit's extrapolation: a trend
-        # (a drift) lives there, and fitted to them the 1/f^4 term would soak it up.
-        use = np.arange(len(p)) >= 4
+        use = ~self.extrapolated()
         s = self.spectrum.fit(p, use)
         self.psd = s
         self.weight = minimum_phase(1.0 / np.sqrt(s * self.norm), self.n)
@@ -139,6 +140,15 @@ class Whitener:
     def zscores(self, residual: np.ndarray) -> np.ndarray:
         """Periodogram over the fitted noise spectrum, per bin (about 1 where it fits)."""
         return self.periodogram(residual) / self.psd
+
+    def extrapolated(self) -> np.ndarray:
+        """Bins whose noise level is the fit's extrapolation, not fitted to them."""
+        return np.arange(len(self.f_hz)) < EXTRAPOLATED_BINS
+
+    def fitted(self) -> np.ndarray:
+        """Which whitened numbers (real parts, then imaginary) are of bins the noise
+        spectrum was fitted to."""
+        return np.tile(~self.extrapolated(), 2)
 
     def below(self, f_max_hz: float) -> np.ndarray:
         """Which whitened numbers (real parts, then imaginary) are of bins below f_max."""
@@ -180,6 +190,9 @@ class Blocks:
 
     def below(self, f_max_hz: float) -> np.ndarray:
         return np.concatenate([p.below(f_max_hz) for p in self.parts])
+
+    def fitted(self) -> np.ndarray:
+        return np.concatenate([p.fitted() for p in self.parts])
 
 
 def minimum_phase(gain: np.ndarray, n: int) -> np.ndarray:
