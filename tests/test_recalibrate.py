@@ -18,7 +18,7 @@ from leveler.analysis.predict import load_measured
 from leveler.analysis.synthetic import make_measured
 from leveler.cli.main import main
 from leveler.settings import Config, load_config
-from leveler.sim.effects import ActuatorHysteresis, SensorGainError
+from leveler.sim.effects import ActuatorHysteresis, SensorGainError, Signals, TemperatureCoupling
 from leveler.sim.params import PlantParams
 from leveler.typed_config import ConfigError, build
 
@@ -139,8 +139,12 @@ class _Spread:
         return self.spread_v
 
     def command_v(self) -> np.ndarray:
-        t = np.arange(0.0, 600.0, 0.1)
+        t = self.sig.t_s
         return 75.0 + self.spread_v / 2 * (2 * np.abs(2 * (t / 60.0 % 1) - 1) - 1)
+
+    @property
+    def sig(self) -> Signals:  # a 600 s log
+        return Signals(np.arange(0.0, 600.0, 0.1), 0.1, None)
 
 
 def test_degenerate_fits_are_no_evidence() -> None:
@@ -159,6 +163,10 @@ def test_degenerate_fits_are_no_evidence() -> None:
         width_v=0.5, fraction=1.0).degenerate(ev)  # type: ignore[arg-type]
     assert "sits at its bound" in SensorGainError(gain_error=-0.5).degenerate(ev)  # type: ignore[arg-type]
     assert SensorGainError(gain_error=0.2).degenerate(ev) == ""  # type: ignore[arg-type]
+    # A lag longer than the log is a trend (and its start state a free straight line).
+    assert TemperatureCoupling(lag_s=300.0).degenerate(ev) == ""  # type: ignore[arg-type]
+    for lags in ({"lag_s": 1200.0}, {"lag_s": 300.0, "lag2_s": 900.0}):
+        assert "longer than the log" in TemperatureCoupling(**lags).degenerate(ev)  # type: ignore[arg-type]
 
 
 def test_an_open_loop_modulation_is_all_excitation() -> None:

@@ -417,7 +417,10 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
         final = f
         for _ in range(2):
             w_whole.fit_noise(meas.y_m - pred.with_candidate(final.effect))
-            final = fit_effect(final.effect, pred, w_whole, meas, nuisance.on(w_whole))
+            refit = fit_effect(final.effect, pred, w_whole, meas, nuisance.on(w_whole))
+            if refit.effect.degenerate(ev):  # what held out was the fit before this one
+                break
+            final = refit
         # The noise model's 1-sigma misses systematic errors; how far the fits to the two
         # parts of the log, and to the whole, disagree is an honest floor under it.
         sigma = {k: math.hypot(v, 0.5 * f.effect.difference(check.effect, k),

@@ -319,6 +319,17 @@ class TemperatureCoupling(Effect):
     def bounds(self, key: str) -> tuple[float, float]:
         return (1.0, 1e6) if key in ("lag_s", "lag2_s") else (-math.inf, math.inf)
 
+    def degenerate(self, ev: Evidence) -> str:
+        """A lag longer than the log turns the temperature's wander into a trend, and the
+        lag's start state into a free straight line: a sensor drift or the table's own
+        walk can wear it (a 4 pm/s drift was named a coupling through a 1e6 s lag)."""
+        span_s = float(ev.sig.t_s[-1] - ev.sig.t_s[0])
+        longest = max(self.lag_s, self.lag2_s)
+        if longest > span_s:
+            return (f"a lag of {longest:.4g} s is longer than the log ({span_s:.4g} s): "
+                    "a trend, not a coupling")
+        return Effect.degenerate(self, ev)
+
     def canonical(self) -> Effect:
         """Two lags in series commute: the longer is reported first."""
         if self.lag2_s > self.lag_s:
