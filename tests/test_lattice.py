@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from leveler.analysis.evidence import find_lattice
+from leveler.analysis.evidence import find_lattice, lattice_deviance
 
 LSB_M = 20.0 / 2**16 / 2.0e5  # the default 16-bit, +-10 V ADC at 2e5 V/m: 1.53 nm
 
@@ -27,7 +27,7 @@ def reading(rng: np.random.Generator, step_m: float | None, analog_counts: float
 @pytest.mark.parametrize("step_m", [4.6e-9, 1.0e-8, 2.5e-8])
 def test_a_coarse_converter_behind_noise_and_a_fine_one_is_found(step_m: float) -> None:
     rng = np.random.default_rng(17)
-    found = find_lattice(reading(rng, step_m, analog_counts=0.3), LSB_M)
+    found = find_lattice([reading(rng, step_m, analog_counts=0.3)], LSB_M)
     assert found is not None
     # A starting guess: within 5 % (the fine converter rounds each change by up to
     # half a count, a third of the smallest step here); the fit refines it.
@@ -37,7 +37,7 @@ def test_a_coarse_converter_behind_noise_and_a_fine_one_is_found(step_m: float) 
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_no_lattice_in_a_fine_converter_alone(seed: int) -> None:
     rng = np.random.default_rng(seed)
-    assert find_lattice(reading(rng, None, analog_counts=0.3), LSB_M) is None
+    assert find_lattice([reading(rng, None, analog_counts=0.3)], LSB_M) is None
 
 
 def test_a_quiet_reading_on_the_fine_lattice_is_not_a_coarse_one() -> None:
@@ -45,4 +45,25 @@ def test_a_quiet_reading_on_the_fine_lattice_is_not_a_coarse_one() -> None:
     multiples of the count do not line up (their phases spread over the circle)."""
     rng = np.random.default_rng(5)
     y = LSB_M * np.round(rng.normal(0.0, 1.2 * LSB_M, 36_000) / LSB_M)
-    assert find_lattice(y, LSB_M) is None
+    assert find_lattice([y], LSB_M) is None
+
+
+def test_the_held_out_score_of_a_lattice_is_a_deviance() -> None:
+    """Quantization's held-out evidence is the readings' own lattice, scored like a
+    deviance: large at the true step on data the fit never saw, about chi-squared with
+    one degree of freedom (mean 1) where there is no lattice, and not large at a step a
+    few per cent off either way or at twice the step (changes of one step then sit
+    between its points)."""
+    rng = np.random.default_rng(23)
+    step = 2.5e-8
+    y = reading(rng, step, analog_counts=0.2)
+    halves = [y[:18_000], y[18_000:]]
+    at_truth = lattice_deviance(halves, LSB_M, step)
+    assert at_truth > 1000
+    assert lattice_deviance(halves, LSB_M, 2 * step) < 0
+    # A fast wander on the fine converter alone: changes of about a step, no lattice.
+    nulls = [lattice_deviance([LSB_M * np.round(np.cumsum(
+        np.random.default_rng(s).normal(0.0, step, 5_000)) / LSB_M)], LSB_M, step)
+             for s in range(40)]
+    assert abs(float(np.mean(nulls))) < 3.0
+    assert max(nulls) < 31.0  # the penalty a three-parameter candidate pays

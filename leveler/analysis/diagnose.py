@@ -352,6 +352,7 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
         cost0_train = n_train.cost(w_train.whiten(meas.y_m - pred.base.y_m))
         cost0_test = n_test.cost(w_test.whiten(meas.y_m - pred.base.y_m))
         ev = Evidence(meas, pred, w_train)
+        ev_test = Evidence(meas, pred, w_test)
         passed: list[tuple[Fit, Candidate]] = []
         for cls in EFFECTS.values():
             if getattr(pred.effects, cls.name) is not None:
@@ -373,12 +374,16 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
                     continue
                 cost_test = n_test.cost(w_test.whiten(meas.y_m - pred.with_candidate(f.effect)))
                 k = len(f.effect.free)
+                own = f.effect.held_out_deviance(ev_test)
                 cand = Candidate(cls.name, f.effect.values(), deviance(cost0_train, f.cost),
-                                 deviance(cost0_test, cost_test),
+                                 deviance(cost0_test, cost_test) if own is None else own,
                                  k * math.log(2 * len(w_test.f_hz)), sigma=f.sigma,
                                  round=len(found))
                 tried.append(cand)
                 if cand.deviance_test <= cand.penalty:
+                    continue
+                if own is not None:  # not a spectral effect: no size in bins to check
+                    passed.append((f, cand))
                     continue
                 # Statistically real is not enough where the noise level is a guess: in
                 # the lowest bins of each block (extrapolated, not fitted) an effect must

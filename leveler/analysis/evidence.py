@@ -124,7 +124,17 @@ class Evidence:
     def lattice(self) -> tuple[float, float] | None:
         """(step, offset) if the readings sit on a lattice clearly coarser than the model's
         ADC count; None otherwise (`find_lattice`)."""
-        return find_lattice(self.meas.y_m[self.w.index()], self.pred.params.sensor.lsb_m)
+        return find_lattice(self._spans(self.meas.y_m), self.pred.params.sensor.lsb_m,
+                            self._spans(self.pred.base.y_m))
+
+    def lattice_deviance(self, step_m: float) -> float:
+        """The score test of the readings on the blocks for a lattice of `step_m`
+        (`lattice_deviance`)."""
+        return lattice_deviance(self._spans(self.meas.y_m), self.pred.params.sensor.lsb_m,
+                                step_m, self._spans(self.pred.base.y_m))
+
+    def _spans(self, x: np.ndarray) -> list[np.ndarray]:
+        return [x[s] for s in self.w.spans]
 
     def noise_std_m(self) -> float:
         """The model's white sensor noise per sample."""
@@ -142,25 +152,47 @@ _LATTICE_COUNTS = np.geomspace(3.0, 300.0, 464)
 _LATTICE_Z = math.log(len(_LATTICE_COUNTS) / 1e-4)
 
 
-def find_lattice(y_m: np.ndarray, lsb_m: float) -> tuple[float, float] | None:
-    """(step, offset) of a lattice the readings sit on, coarser than `lsb_m`; or None.
+def _changes(spans: list[np.ndarray], lsb_m: float, predicted: list[np.ndarray] | None
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """|changes| between consecutive readings within each span, larger than 1.5 counts,
+    and the model's predicted |change| at each (zero without a prediction)."""
+    d = np.concatenate([np.abs(np.diff(y)) for y in spans])
+    dp = (np.zeros_like(d) if predicted is None
+          else np.concatenate([np.abs(np.diff(y)) for y in predicted]))
+    big = d > 1.5 * lsb_m
+    return d[big], dp[big]
+
+
+def _unpredicted(d: np.ndarray, dp: np.ndarray, q: float) -> np.ndarray:
+    """The changes a lattice of step q is sought in: larger than half a step, where the
+    model predicts less than a quarter of one. A modulation's steps and the ringing after
+    them repeat with the same sizes every cycle, and a set of repeated sizes lines up on
+    some divisor of them (a 5 V square was a "112 nm converter" before); a converter's
+    own changes come where a slow signal crosses a level, unpredicted."""
+    return d[(d > 0.5 * q) & (dp < 0.25 * q)]
+
+
+def find_lattice(spans: list[np.ndarray], lsb_m: float,
+                 predicted: list[np.ndarray] | None = None) -> tuple[float, float] | None:
+    """(step, offset) of a lattice the readings (in `spans`) sit on, coarser than
+    `lsb_m`; or None.
 
     Seen in the changes between consecutive readings: on a lattice they are whole
     multiples of its step, whatever the signal does between samples. A little analog noise
     after a coarse converter, read by a finer one, blurs each change by a count or two of
     the fine converter, so the step is found by phase coherence: for each trial step q the
-    changes larger than q/2 are mapped to phases 2 pi d/q, and a lattice makes them line
-    up (|mean of exp(i phase)| near 1) where smooth noise leaves them spread. The largest
-    step that lines them up in phase is the lattice (its halves and thirds line them up too).
+    changes larger than q/2 (and not predicted by the model, `_unpredicted`) are mapped to
+    phases 2 pi d/q, and a lattice makes them line up (|mean of exp(i phase)| near 1) where
+    smooth noise leaves them spread. The largest step that lines them up in phase is the
+    lattice (its halves and thirds line them up too).
     """
-    d = np.abs(np.diff(y_m))
-    d = d[d > 1.5 * lsb_m]
+    d, dp = _changes(spans, lsb_m, predicted)
     if len(d) < 50:
         return None
     steps = lsb_m * _LATTICE_COUNTS
     coherence = np.full(len(steps), -1.0)
     for i, q in enumerate(steps):
-        sel = d[d > 0.5 * q]
+        sel = _unpredicted(d, dp, q)
         if len(sel) < 50:
             break
         # The real part: changes of one step at a trial step of two line up in antiphase.
@@ -175,8 +207,24 @@ def find_lattice(y_m: np.ndarray, lsb_m: float) -> tuple[float, float] | None:
     # between grid points on the same changes.
     near = np.flatnonzero((steps > steps[lined_up[-1]] / 1.3) & (coherence > 0))
     best = float(steps[near[np.argmax(coherence[near])]])
-    sel = d[d > 0.5 * best]
+    sel = _unpredicted(d, dp, best)
     trial = best * np.linspace(0.985, 1.015, 61)
     step = float(trial[np.argmax([np.mean(np.cos(2 * np.pi * sel / q)) for q in trial])])
-    offset = float(np.angle(np.mean(np.exp(2j * np.pi * y_m / step)))) / (2 * np.pi) * step
+    y = np.concatenate(spans)
+    offset = float(np.angle(np.mean(np.exp(2j * np.pi * y / step)))) / (2 * np.pi) * step
     return step, offset
+
+
+def lattice_deviance(spans: list[np.ndarray], lsb_m: float, step_m: float,
+                     predicted: list[np.ndarray] | None = None) -> float:
+    """2 n c |c|, with c the mean of cos(2 pi d / step) over the n changes d between
+    consecutive readings (within each span) larger than half a step and not predicted
+    (`_unpredicted`): the score test for a lattice of that step against phases spread
+    evenly (chi-squared with one degree of freedom under that null, like a deviance);
+    negative when the changes sit between lattice points."""
+    d, dp = _changes(spans, lsb_m, predicted)
+    d = _unpredicted(d, dp, step_m)
+    if not len(d):
+        return 0.0
+    c = float(np.mean(np.cos(2 * np.pi * d / step_m)))
+    return 2.0 * len(d) * c * abs(c)
