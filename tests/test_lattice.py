@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from leveler.analysis.evidence import find_lattice, lattice_deviance
+from leveler.analysis.evidence import find_lattice, lattice_deviance, modulation_hz
 
 LSB_M = 20.0 / 2**16 / 2.0e5  # the default 16-bit, +-10 V ADC at 2e5 V/m: 1.53 nm
 
@@ -67,3 +67,16 @@ def test_the_held_out_score_of_a_lattice_is_a_deviance() -> None:
              for s in range(40)]
     assert abs(float(np.mean(nulls))) < 3.0
     assert max(nulls) < 31.0  # the penalty a three-parameter candidate pays
+
+
+def test_a_modulation_is_found_where_it_is_a_line_and_not_in_a_drift() -> None:
+    """The modulation a periodic fit is checked against: a 163 s triangle over the first
+    hour of three, with noise, to 0.1 %; a random walk (a drift, red) has no line."""
+    rng = np.random.default_rng(4)
+    dt = 0.1
+    t = np.arange(0.0, 10_800.0, dt)
+    tri = np.where(t < 3600.0, 5.5 * (2 * np.abs(2 * (t / 163.0 % 1) - 1) - 1), 0.0)
+    f = modulation_hz(tri + rng.normal(0.0, 0.5, len(t)), dt)
+    assert f is not None and f == pytest.approx(1 / 163.0, rel=1e-3)
+    assert modulation_hz(np.cumsum(rng.normal(0.0, 0.01, len(t))), dt) is None
+    assert modulation_hz(None, dt) is None

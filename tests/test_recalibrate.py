@@ -18,7 +18,13 @@ from leveler.analysis.predict import load_measured
 from leveler.analysis.synthetic import make_measured
 from leveler.cli.main import main
 from leveler.settings import Config, load_config
-from leveler.sim.effects import ActuatorHysteresis, SensorGainError, Signals, TemperatureCoupling
+from leveler.sim.effects import (
+    ActuatorHysteresis,
+    PeriodicDisturbance,
+    SensorGainError,
+    Signals,
+    TemperatureCoupling,
+)
 from leveler.sim.params import PlantParams
 from leveler.typed_config import ConfigError, build
 
@@ -146,6 +152,9 @@ class _Spread:
     def sig(self) -> Signals:  # a 600 s log
         return Signals(np.arange(0.0, 600.0, 0.1), 0.1, None)
 
+    def modulation_hz(self) -> float:
+        return 1.0 / 60.0
+
 
 def test_degenerate_fits_are_no_evidence() -> None:
     """A play wider than the command's reversals never turns (a gain or a lag); a fit
@@ -163,6 +172,10 @@ def test_degenerate_fits_are_no_evidence() -> None:
         width_v=0.5, fraction=1.0).degenerate(ev)  # type: ignore[arg-type]
     assert "sits at its bound" in SensorGainError(gain_error=-0.5).degenerate(ev)  # type: ignore[arg-type]
     assert SensorGainError(gain_error=0.2).degenerate(ev) == ""  # type: ignore[arg-type]
+    # A periodic tilt on a harmonic of the modulation is the actuator's response to it.
+    assert "the actuator's response" in PeriodicDisturbance(period_s=60.0 / 7).degenerate(ev)  # type: ignore[arg-type]
+    assert PeriodicDisturbance(period_s=60.0 / 7 * 1.02).degenerate(ev) == ""  # type: ignore[arg-type]
+    assert PeriodicDisturbance(period_s=97.0).degenerate(ev) == ""  # type: ignore[arg-type]
     # A lag longer than the log is a trend (and its start state a free straight line).
     assert TemperatureCoupling(lag_s=300.0).degenerate(ev) == ""  # type: ignore[arg-type]
     for lags in ({"lag_s": 1200.0}, {"lag_s": 300.0, "lag2_s": 900.0}):

@@ -13,8 +13,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from leveler.analysis.predict import Measured, Predictor
-from leveler.analysis.whittle import Blocks
+from leveler.analysis.predict import Measured, Predictor, excitation_v
+from leveler.analysis.whittle import Blocks, hann
 from leveler.sim.effects import Effect
 
 _LINE_Z = 12.0  # a line must stand this far (in ln p-value) above the noise spectrum
@@ -133,6 +133,13 @@ class Evidence:
         return lattice_deviance(self._spans(self.meas.y_m), self.pred.params.sensor.lsb_m,
                                 step_m, self._spans(self.pred.base.y_m))
 
+    def modulation_hz(self) -> float | None:
+        """The fundamental of what moved the actuator besides feedback (`excitation_v`), if
+        it is a line 100x above the median of its spectrum; None without one."""
+        if not hasattr(self, "_modulation"):
+            self._modulation = modulation_hz(excitation_v(self.meas), self.sig.dt_s)
+        return self._modulation
+
     def _spans(self, x: np.ndarray) -> list[np.ndarray]:
         return [x[s] for s in self.w.spans]
 
@@ -143,6 +150,23 @@ class Evidence:
     def natural_frequency_hz(self) -> float:
         """The model pendulum's: a line near it means its frequency or Q is off."""
         return self.pred.params.pendulum.natural_frequency_hz
+
+
+def modulation_hz(x: np.ndarray | None, dt_s: float) -> float | None:
+    """The frequency of the strongest line of `x` with at least eight cycles in it
+    (refined between bins to 1/50 of one), or None when there is no line 100x above the
+    median of the octaves around it (no modulation; a drift is no line)."""
+    if x is None or len(x) < 64:
+        return None
+    x = x - np.mean(x)
+    p = np.abs(np.fft.rfft(x * hann(len(x)))) ** 2
+    k = int(np.argmax(p[8:])) + 8
+    if not p[k] > 100 * np.median(p[k // 2 + 1:2 * k]):
+        return None
+    t = np.arange(len(x)) * dt_s
+    trial = (k + np.linspace(-1.0, 1.0, 101)) / (len(x) * dt_s)
+    power = [abs(np.sum(x * np.exp(-2j * np.pi * f * t))) for f in trial]
+    return float(trial[int(np.argmax(power))])
 
 
 #: Steps tried by the lattice scan: from 3 counts of the model's ADC (below that its own

@@ -58,6 +58,7 @@ class Evidence(Protocol):
     def command_v(self) -> np.ndarray: ...
     def lattice(self) -> tuple[float, float] | None: ...
     def lattice_deviance(self, step_m: float) -> float: ...
+    def modulation_hz(self) -> float | None: ...
     def noise_std_m(self) -> float: ...
     def natural_frequency_hz(self) -> float: ...
 
@@ -170,6 +171,12 @@ def waveform(shape: str, cycles: np.ndarray, hold_cycles: float) -> np.ndarray:
     return (integral(cycles + hold_cycles) - integral(cycles)) / hold_cycles
 
 
+#: A periodic disturbance within this fraction of a modulation harmonic (up to the
+#: MODULATION_HARMONICS-th) is taken for the actuator's response to the modulation.
+LOCKED_REL = 0.005
+MODULATION_HARMONICS = 30
+
+
 @dataclass(frozen=True, slots=True)
 class PeriodicDisturbance(Effect):
     """A periodic tilt: a cooler, an air handler, a pump cycling (sawtooth: slow rise, drop)."""
@@ -215,6 +222,19 @@ class PeriodicDisturbance(Effect):
         if key == "phase_s":  # a phase is defined modulo the period
             d = (d + self.period_s / 2) % self.period_s - self.period_s / 2
         return d
+
+    def degenerate(self, ev: Evidence) -> str:
+        """A period on a harmonic of the log's modulation is the actuator's response to it
+        (a hysteresis or a delay the form cannot hold), not a disturbance: a 0.3 nrad one on
+        the 7th harmonic of a triangle modulation had stood out of the noise."""
+        f_mod = ev.modulation_hz()
+        if f_mod is not None:
+            f = 1.0 / self.period_s
+            n = round(f / f_mod)
+            if 1 <= n <= MODULATION_HARMONICS and abs(f - n * f_mod) <= LOCKED_REL * f:
+                return (f"its period {self.period_s:.4g} s is the modulation's "
+                        f"({1 / f_mod:.4g} s) / {n}: the actuator's response to it")
+        return Effect.degenerate(self, ev)
 
     def describe(self) -> str:
         return (f"periodic disturbance, period {self.period_s:.4g} s, {self.shape}, "
