@@ -19,6 +19,7 @@ from leveler.analysis.synthetic import make_measured
 from leveler.cli.main import main
 from leveler.settings import Config, load_config
 from leveler.sim.effects import (
+    ActuatorDelay,
     ActuatorHysteresis,
     PeriodicDisturbance,
     SensorGainError,
@@ -155,6 +156,11 @@ class _Spread:
     def modulation_hz(self) -> float:
         return 1.0 / 60.0
 
+    pull_limit = 3.0
+
+    def sensor_path_pull(self, gain_error: float) -> float:  # recalibrated +1 %, sigma 4.1 %
+        return (1.01 * (1 + gain_error) - 1) / 0.041
+
 
 def test_degenerate_fits_are_no_evidence() -> None:
     """A play wider than the command's reversals never turns (a gain or a lag); a fit
@@ -176,10 +182,16 @@ def test_degenerate_fits_are_no_evidence() -> None:
     assert "the actuator's response" in PeriodicDisturbance(period_s=60.0 / 7).degenerate(ev)  # type: ignore[arg-type]
     assert PeriodicDisturbance(period_s=60.0 / 7 * 1.02).degenerate(ev) == ""  # type: ignore[arg-type]
     assert PeriodicDisturbance(period_s=97.0).degenerate(ev) == ""  # type: ignore[arg-type]
-    # A lag longer than the log is a trend (and its start state a free straight line).
-    assert TemperatureCoupling(lag_s=300.0).degenerate(ev) == ""  # type: ignore[arg-type]
-    for lags in ({"lag_s": 1200.0}, {"lag_s": 300.0, "lag2_s": 900.0}):
-        assert "longer than the log" in TemperatureCoupling(**lags).degenerate(ev)  # type: ignore[arg-type]
+    # A gain error that leaves the sensor path within the accepted pull is a calibration.
+    assert "a calibration, not an effect" in SensorGainError(gain_error=-0.05).degenerate(ev)  # type: ignore[arg-type]
+    assert SensorGainError(gain_error=-0.15).degenerate(ev) == ""  # type: ignore[arg-type]
+    # A delay under a tenth of a sample is sampling and hold.
+    assert "sampling and hold" in ActuatorDelay(delay_s=0.003).degenerate(ev)  # type: ignore[arg-type]
+    assert ActuatorDelay(delay_s=0.04).degenerate(ev) == ""  # type: ignore[arg-type]
+    # A lag over 3x the log is a trend (and its start state a free straight line).
+    assert TemperatureCoupling(lag_s=1500.0).degenerate(ev) == ""  # type: ignore[arg-type]
+    for lags in ({"lag_s": 2000.0}, {"lag_s": 300.0, "lag2_s": 2000.0}):
+        assert "a trend, not a coupling" in TemperatureCoupling(**lags).degenerate(ev)  # type: ignore[arg-type]
 
 
 def test_an_open_loop_modulation_is_all_excitation() -> None:

@@ -14,6 +14,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from leveler.analysis.predict import Measured, Predictor, excitation_v
+from leveler.analysis.recalibrate import PULL_LIMIT
 from leveler.analysis.whittle import Blocks, hann
 from leveler.sim.effects import Effect
 
@@ -139,6 +140,21 @@ class Evidence:
         if not hasattr(self, "_modulation"):
             self._modulation = modulation_hz(excitation_v(self.meas), self.sig.dt_s)
         return self._modulation
+
+    @property
+    def pull_limit(self) -> float:
+        """The pull (offset / sigma) the recalibration accepts as a calibration."""
+        return PULL_LIMIT
+
+    def sensor_path_pull(self, gain_error: float) -> float | None:
+        """The pull of the sensor path from nominal with `gain_error` on top of the
+        recalibrated one (the knob scales the sensor arm); None if no tolerance is stated."""
+        sigma = self.meas.config.plant.uncertainty.sensor_path_rel
+        if not sigma > 0:
+            return None
+        path = (self.pred.params.pendulum.sensor_arm_m
+                / self.meas.config.plant.pendulum.sensor_arm_m)
+        return (path * (1.0 + gain_error) - 1.0) / sigma
 
     def _spans(self, x: np.ndarray) -> list[np.ndarray]:
         return [x[s] for s in self.w.spans]

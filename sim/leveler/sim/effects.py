@@ -48,6 +48,8 @@ class Evidence(Protocol):
 
     @property
     def sig(self) -> Signals: ...
+    @property
+    def pull_limit(self) -> float: ...
     def fmin_hz(self) -> float: ...
     def peaks(self, fmin_hz: float, fmax_hz: float, most: int = 3) -> list[float]: ...
     def best_linear(self, starts: Sequence[Effect], amp_key: str | None,
@@ -59,6 +61,7 @@ class Evidence(Protocol):
     def lattice(self) -> tuple[float, float] | None: ...
     def lattice_deviance(self, step_m: float) -> float: ...
     def modulation_hz(self) -> float | None: ...
+    def sensor_path_pull(self, gain_error: float) -> float | None: ...
     def noise_std_m(self) -> float: ...
     def natural_frequency_hz(self) -> float: ...
 
@@ -276,6 +279,10 @@ class PeriodicDisturbance(Effect):
                 self.replace(shape="triangle", peak_to_peak_rad=tri_pp, phase_s=tri_ph % p)]
 
 
+#: a temperature coupling's lag beyond this many times the log is a trend
+MAX_LAG_SPANS = 3.0
+
+
 @dataclass(frozen=True, slots=True)
 class TemperatureCoupling(Effect):
     """Tilt following the temperature through a lag: the other axis, a bending table top.
@@ -346,14 +353,16 @@ class TemperatureCoupling(Effect):
         return (1.0, 1e6) if key in ("lag_s", "lag2_s") else (-math.inf, math.inf)
 
     def degenerate(self, ev: Evidence) -> str:
-        """A lag longer than the log turns the temperature's wander into a trend, and the
-        lag's start state into a free straight line: a sensor drift or the table's own
-        walk can wear it (a 4 pm/s drift was named a coupling through a 1e6 s lag)."""
+        """A lag much longer than the log turns the temperature's wander into a trend, and
+        the lag's start state into a free straight line (beyond 3x the log, straight to
+        within 1 % of its fall): a sensor drift or the table's own walk can wear it (a
+        4 pm/s drift was named a coupling through a 1e6 s lag). Up to 3x it is still a
+        lag: two in series of 600 s and 2,200 s fit as one of 12,100 s in a 3 h log."""
         span_s = float(ev.sig.t_s[-1] - ev.sig.t_s[0])
         longest = max(self.lag_s, self.lag2_s)
-        if longest > span_s:
-            return (f"a lag of {longest:.4g} s is longer than the log ({span_s:.4g} s): "
-                    "a trend, not a coupling")
+        if longest > MAX_LAG_SPANS * span_s:
+            return (f"a lag of {longest:.4g} s is over {MAX_LAG_SPANS:g}x the log "
+                    f"({span_s:.4g} s): a trend, not a coupling")
         return Effect.degenerate(self, ev)
 
     def canonical(self) -> Effect:
@@ -387,6 +396,10 @@ class TemperatureCoupling(Effect):
 
 
 # -- actuator: volts commanded -> volts that move the piezo ----------------------------------
+
+
+#: a delay under this share of a sample is sampling and hold, not a delay
+MIN_DELAY_SAMPLES = 0.1
 
 
 @dataclass(frozen=True, slots=True)
@@ -428,6 +441,17 @@ class ActuatorDelay(Effect):
 
     def bounds(self, key: str) -> tuple[float, float]:
         return (0.0, 30.0)
+
+    def degenerate(self, ev: Evidence) -> str:
+        """A delay under a tenth of a sample is how the DAQ times its read and write within
+        a sample, and how the model holds a slewing command between samples, not a part
+        of the stand: an independent simulator's null log (its own integration and hold)
+        read as a 3.2 ms delay at 10 Hz."""
+        if self.delay_s < MIN_DELAY_SAMPLES * ev.sig.dt_s:
+            return (f"a delay of {self.delay_s * 1e3:.3g} ms is under "
+                    f"{MIN_DELAY_SAMPLES:g} of a {ev.sig.dt_s * 1e3:.3g} ms sample: "
+                    "sampling and hold, not a delay")
+        return Effect.degenerate(self, ev)
 
     def describe(self) -> str:
         return f"actuator delay, {self.delay_s * 1e3:.4g} ms"
@@ -630,6 +654,16 @@ class SensorGainError(Effect):
 
     def bounds(self, key: str) -> tuple[float, float]:
         return (-0.5, 0.5)  # beyond that it is a different sensor, not a calibration error
+
+    def degenerate(self, ev: Evidence) -> str:
+        """The sensor path with this error on top of its recalibration, still within the
+        pull the recalibration accepts, is a calibration, not an effect: a null log read
+        as "sensor gain error, -2.6 %" against a stated 4.1 % tolerance."""
+        pull = ev.sensor_path_pull(self.gain_error)
+        if pull is not None and abs(pull) <= ev.pull_limit:
+            return (f"the sensor path then reads {pull:+.2g} sigma of its stated tolerance "
+                    "from nominal: a calibration, not an effect")
+        return Effect.degenerate(self, ev)
 
     def describe(self) -> str:
         return f"sensor gain error, reads {self.gain_error * 100:+.3g}%"
