@@ -135,8 +135,8 @@ class Evidence:
                                 step_m, self._spans(self.pred.base.y_m))
 
     def modulation_hz(self) -> float | None:
-        """The fundamental of what moved the actuator besides feedback (`excitation_v`), if
-        it is a line 100x above the median of its spectrum; None without one."""
+        """The fundamental of what moved the actuator besides feedback (`excitation_v`):
+        its strongest line (`modulation_hz`); None without one."""
         if not hasattr(self, "_modulation"):
             self._modulation = modulation_hz(excitation_v(self.meas), self.sig.dt_s)
         return self._modulation
