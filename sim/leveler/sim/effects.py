@@ -355,7 +355,7 @@ class TemperatureCoupling(Effect):
     def degenerate(self, ev: Evidence) -> str:
         """A lag much longer than the log turns the temperature's wander into a trend, and
         the lag's start state into a free straight line (beyond 3x the log, straight to
-        within 1 % of its fall): a sensor drift or the table's own walk can wear it (a
+        within 3 % of its fall): a sensor drift or the table's own walk can wear it (a
         4 pm/s drift was named a coupling through a 1e6 s lag). Up to 3x it is still a
         lag: two in series of 600 s and 2,200 s fit as one of 12,100 s in a 3 h log."""
         span_s = float(ev.sig.t_s[-1] - ev.sig.t_s[0])
