@@ -354,7 +354,8 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
         w_test = make_blocks(meas, pred, test)
         n_train, n_test = nuisance.on(w_train), nuisance.on(w_test)
         cost0_train = n_train.cost(w_train.whiten(meas.y_m - pred.base.y_m))
-        cost0_test = n_test.cost(w_test.whiten(meas.y_m - pred.base.y_m))
+        white0_test = w_test.whiten(meas.y_m - pred.base.y_m)
+        cost0_test = n_test.cost(white0_test)
         ev = Evidence(meas, pred, w_train)
         ev_test = Evidence(meas, pred, w_test)
         passed: list[tuple[Fit, Candidate]] = []
@@ -376,7 +377,8 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
                     tried.append(Candidate(cls.name, f.effect.values(), 0.0, 0.0, 0.0,
                                            note=f"rejected: {why}", round=len(found)))
                     continue
-                cost_test = n_test.cost(w_test.whiten(meas.y_m - pred.with_candidate(f.effect)))
+                white_test = w_test.whiten(meas.y_m - pred.with_candidate(f.effect))
+                cost_test = n_test.cost(white_test)
                 k = len(f.effect.free)
                 own = f.effect.held_out_deviance(ev_test)
                 cand = Candidate(cls.name, f.effect.values(), deviance(cost0_train, f.cost),
@@ -399,9 +401,8 @@ def diagnose(meas: Measured, max_effects: int = 4) -> Diagnosis:
                 # lines and the resonance; a null log's 64 mV play, by 0.06).
                 fitted = w_test.fitted()
                 n_fit = n_test.restricted(fitted)
-                white0 = w_test.whiten(meas.y_m - pred.base.y_m)[fitted]
-                white1 = w_test.whiten(meas.y_m - pred.with_candidate(f.effect))[fitted]
-                in_fitted = deviance(n_fit.cost(white0), n_fit.cost(white1)) > cand.penalty
+                in_fitted = deviance(n_fit.cost(white0_test[fitted]),
+                                     n_fit.cost(white_test[fitted])) > cand.penalty
                 share = _MIN_NOISE_SHARE_FITTED if in_fitted else _MIN_NOISE_SHARE
                 size = float(np.std(pred.physical_change(f.effect)[w_test.index()]))
                 if size > share * noise:
