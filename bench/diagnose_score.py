@@ -328,6 +328,37 @@ def build_cases(families: list[str], severities: list[str], seeds: list[int],
     return out
 
 
+def calibrate_thresholds(workdir: str, hours: float, runs: int, jobs: int,
+                         platform_inertia: bool, nulls: int, effects: bool) -> str:
+    """Run diagnose's null calibration once per log shape the cases have (modulated,
+    closed loop only), on a template log of that shape, so every case finds it cached;
+    what the thresholds rest on, for the header."""
+    if runs <= 0:
+        return "BIC penalties (no null calibration)"
+    shapes = ([True] if effects or nulls else []) + ([False] if nulls > 1 else [])
+    said = []
+    for modulated in shapes:
+        log = Path(workdir) / f"calibration-template-{'mod' if modulated else 'closed'}.mcap"
+        generate(None, "medium", 7_000_000 + int(modulated), log, hours=hours,
+                 modulated=modulated, nominal_config=REPO / "config/sim.toml",
+                 platform_inertia=platform_inertia)
+        t0 = time.perf_counter()
+        proc = subprocess.run([*leveler_command(), "diagnose", str(log), "--json",
+                               "--null-runs", str(runs), "--jobs", str(max(1, jobs)),
+                               "--model-out", str(log.with_suffix(".fitted.toml"))],
+                              capture_output=True, text=True, cwd=REPO,
+                              timeout=DIAGNOSE_TIMEOUT_S * 4)
+        if proc.returncode != 0:
+            raise SystemExit(f"null calibration failed: {proc.stderr.strip()[-2000:]}")
+        th = json.loads(proc.stdout)["thresholds"]
+        print(f"null calibration ({'modulated' if modulated else 'closed loop'}): "
+              f"{th['runs']} runs in {time.perf_counter() - t0:.0f} s: {th['by_family']}",
+              file=sys.stderr)
+        said.append(f"{'modulated' if modulated else 'closed loop'} "
+                    + ", ".join(f"{SHORT[k]} {v:.3g}" for k, v in th["by_family"].items()))
+    return f"null-calibrated ({runs} runs per shape): " + "; ".join(said)
+
+
 def _clock(s: float) -> str:
     s = max(0, int(s))
     return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}"
@@ -348,6 +379,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true",
                     help="1 seed, weak and strong, 6 nulls, 3 h logs")
     ap.add_argument("--jobs", type=int, default=2, help="parallel cases (default 2)")
+    ap.add_argument("--null-runs", type=int, default=None,
+                    help="null runs of diagnose's threshold calibration, one per log shape "
+                    "(modulated, closed loop only), made first and cached (default 50, "
+                    "--quick 20; 0: BIC penalties)")
     ap.add_argument("--out", type=Path, default=Path("/tmp/diagnose-score.json"))
     ap.add_argument("--keep", type=Path, default=None,
                     help="keep the logs in this directory (default: a temp dir, removed)")
@@ -397,6 +432,10 @@ def main(argv: list[str] | None = None) -> int:
     else:
         tmp = tempfile.TemporaryDirectory(prefix="diagnose-score-")
         workdir = tmp.name
+    null_runs = args.null_runs if args.null_runs is not None else (20 if args.quick else 50)
+    thresholds = calibrate_thresholds(workdir, hours, null_runs, args.jobs,
+                                      not args.no_platform_inertia, nulls, bool(families))
+    header += f"; acceptance thresholds: {thresholds}"
     results: list[dict[str, Any]] = []
     start = time.monotonic()
     try:

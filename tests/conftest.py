@@ -24,6 +24,10 @@ settings.register_profile("repeatable", derandomize=True, database=None)
 settings.register_profile("explore", derandomize=False)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "repeatable"))
 
+# A null calibration `leveler diagnose` cached on this machine must not decide a test: the
+# tests (and the CLIs they start) read and write a cache of their own.
+os.environ["LEVELER_CACHE_DIR"] = tempfile.mkdtemp(prefix="leveler-test-cache-")
+
 
 @dataclass
 class DaemonProc:

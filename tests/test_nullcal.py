@@ -1,0 +1,111 @@
+"""Thresholds calibrated on null data: the tail estimate, the null logs it simulates on a
+log's own schedule, and the CLI's calibration and cache."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from leveler.analysis import nullcal
+from leveler.analysis.predict import excitation_v, load_measured
+from leveler.analysis.synthetic import make_measured
+from leveler.cli.main import main
+from leveler.settings import load_config
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_the_tail_beyond_the_runs_is_extrapolated_to_the_right_quantile() -> None:
+    """Exponential null statistics (as a likelihood ratio's tail is): from 50 runs the
+    1-in-800 level, ln 800 = 6.7, comes out right on average and within 40 % nearly
+    always; a naive maximum of 50 would be ln 50 = 3.9."""
+    rng = np.random.default_rng(5)
+    alpha = 0.01 / 8
+    got = np.array([nullcal.tail_threshold(list(rng.exponential(1.0, 50)), alpha)
+                    for _ in range(400)])
+    truth = math.log(1 / alpha)
+    assert abs(np.mean(got) / truth - 1) < 0.1
+    assert np.mean(np.abs(got / truth - 1) < 0.4) > 0.85
+
+
+def test_within_the_runs_the_threshold_is_the_empirical_quantile() -> None:
+    values = list(np.arange(100.0))
+    assert nullcal.tail_threshold(values, 0.5) == pytest.approx(np.quantile(values, 0.5))
+    assert nullcal.tail_threshold([], 0.01) == math.inf
+
+
+def test_thresholds_rise_with_what_the_nulls_find() -> None:
+    rng = np.random.default_rng(6)
+    stats = {"quiet": [0.0] * 30, "busy": list(20.0 + 5.0 * rng.exponential(1.0, 30))}
+    cal = nullcal.from_statistics(stats, 0.01, "k", 1.0)
+    assert cal.thresholds["quiet"] == 0.0  # the penalty then stands: see diagnose
+    assert cal.thresholds["busy"] > max(stats["busy"])  # 1 in 200 per family, 30 runs
+    assert cal.runs == 30
+    assert "30 null runs" in cal.describe()
+
+
+@pytest.fixture(scope="module")
+def modulated_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    cfg, text = load_config(REPO / "config" / "sim.toml")
+    log = tmp_path_factory.mktemp("nullcal") / "mod.mcap"
+    make_measured(log, cfg, text, None, duration_s=2400.0, seed=3, dither_v=4.0,
+                  dither_period_s=90.0)
+    return log
+
+
+def test_a_null_run_follows_the_logs_schedule_and_modulation(modulated_log: Path) -> None:
+    meas = load_measured(modulated_log)
+    a, b, again = (nullcal.simulate_null(meas, s) for s in (1, 2, 1))
+    assert len(a.y_m) == len(meas.y_m)
+    # the same modulation drives the piezo; the readings are a new draw of the model
+    assert np.std(excitation_v(a) - excitation_v(meas)) < 1e-6 * np.std(excitation_v(meas))
+    assert np.array_equal(a.y_m, again.y_m) and not np.array_equal(a.y_m, b.y_m)
+    assert 0.3 < np.std(a.y_m) / np.std(meas.y_m) < 3.0
+    assert (a.sig.temperature_k is None) == (meas.sig.temperature_k is None)
+
+
+def test_a_drawn_stand_stays_within_its_stated_tolerances() -> None:
+    cfg, _ = load_config(REPO / "config" / "sim.toml")
+    p, u = cfg.plant, cfg.plant.uncertainty
+    rng = np.random.default_rng(0)
+    arms = [nullcal.draw_plant(p, rng).pendulum.sensor_arm_m / p.pendulum.sensor_arm_m - 1
+            for _ in range(300)]
+    assert np.std(arms) == pytest.approx(u.sensor_path_rel, rel=0.2)
+    assert max(np.abs(arms)) <= 3 * u.sensor_path_rel + 1e-12
+
+
+def test_cli_calibrates_caches_and_reuses(modulated_log: Path, tmp_path: Path,
+                                          capsys: pytest.CaptureFixture[str]) -> None:
+    out = ["--model-out", str(tmp_path / "fitted.toml"), "--json"]
+    assert main(["diagnose", str(modulated_log), "--null-runs", "2", "--jobs", "1", *out]) == 0
+    got = capsys.readouterr()
+    first = json.loads(got.out)["thresholds"]
+    assert first["source"] == "null calibration" and first["runs"] == 2
+    assert "null calibration: 2/2 runs" in got.err
+    assert nullcal.cache_path(first["key"]).exists()
+    assert set(first["by_family"]) >= {"periodic_disturbance", "actuator_delay"}
+    assert all(v >= 0 for v in first["by_family"].values())
+
+    assert main(["diagnose", str(modulated_log), *out]) == 0  # the cache, no new runs
+    got = capsys.readouterr()
+    assert json.loads(got.out)["thresholds"] == first
+    assert "null calibration" not in got.err
+    cands = json.loads(got.out)["candidates"]
+    scored = [c for c in cands if c["penalty"] > 0]
+    assert scored and all(c["threshold"] == max(c["penalty"], first["by_family"][c["name"]])
+                          for c in scored)
+
+
+def test_cli_says_when_thresholds_are_not_calibrated(modulated_log: Path, tmp_path: Path,
+                                                     monkeypatch: pytest.MonkeyPatch,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.setenv("LEVELER_CACHE_DIR", str(tmp_path / "empty-cache"))
+    assert main(["diagnose", str(modulated_log), "--model-out",
+                 str(tmp_path / "f.toml")]) == 0
+    assert "not calibrated on null data (--null-runs 50" in capsys.readouterr().out
+    assert main(["diagnose", str(modulated_log), "--null-runs", "-1"]) == 2
+    assert "--null-runs -1" in capsys.readouterr().err
