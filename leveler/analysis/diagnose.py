@@ -33,7 +33,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from scipy.optimize import least_squares, minimize_scalar
@@ -53,9 +53,6 @@ from leveler.analysis.recalibrate import Recalibration, apply, recalibrate
 from leveler.analysis.whittle import ENBW_BINS, Blocks, Whitener, deviance
 from leveler.sim.effects import EFFECTS, Effect, EffectsParams
 from leveler.sim.params import PlantParams
-
-if TYPE_CHECKING:
-    from leveler.analysis.nullcal import NullCalibration
 
 #: An accepted effect moves the reading by this share of the sensor's white noise, rms
 #: over the held-out part: where its evidence needs the extrapolated lowest bins, and
@@ -131,7 +128,6 @@ class Diagnosis:
     leftover: Leftover | None = None  # lines no family explained
     # per band: residual power over the noise spectrum, nominal and final model (held out)
     gap_normalised: dict[str, dict[str, float] | None] = field(default_factory=dict)
-    calibration: NullCalibration | None = None  # where the thresholds came from, if not BIC
 
 
 def warmup_samples(meas: Measured, pred: Predictor) -> int:

@@ -136,7 +136,8 @@ def headline_band(d: Diagnosis) -> str | None:
     return best
 
 
-def result_json(d: Diagnosis, meas: Measured, model_out: str | None) -> dict[str, Any]:
+def result_json(d: Diagnosis, meas: Measured, model_out: str | None,
+                cal: NullCalibration | None = None) -> dict[str, Any]:
     return {
         "log": meas.path,
         "model_in": meas.model_source,
@@ -156,7 +157,7 @@ def result_json(d: Diagnosis, meas: Measured, model_out: str | None) -> dict[str
                        "deviance_held_out": c.deviance_test, "score": c.score}
                       for c in d.ambiguous] or None,
         "unexplained": None if d.leftover is None else d.leftover.as_dict(),
-        "thresholds": thresholds_json(d),
+        "thresholds": thresholds_json(cal),
         "candidates": [{"name": c.name, "round": c.round, "params": c.params,
                         "uncertainty": c.sigma, "deviance_train": c.deviance_train,
                         "deviance_held_out": c.deviance_test, "penalty": c.penalty,
@@ -167,22 +168,21 @@ def result_json(d: Diagnosis, meas: Measured, model_out: str | None) -> dict[str
     }
 
 
-def thresholds_json(d: Diagnosis) -> dict[str, Any]:
-    cal = d.calibration
+def thresholds_json(cal: NullCalibration | None) -> dict[str, Any]:
     if cal is None:
         return {"source": "BIC penalty", "runs": 0, "alpha": None, "by_family": None}
     return {"source": "null calibration", "runs": cal.runs, "alpha": cal.alpha,
             "by_family": cal.thresholds, "key": cal.key}
 
 
-def thresholds_line(d: Diagnosis) -> str:
-    if d.calibration is not None:
-        return d.calibration.describe()
+def thresholds_line(cal: NullCalibration | None) -> str:
+    if cal is not None:
+        return cal.describe()
     return ("acceptance thresholds: a BIC penalty per family, not calibrated on null data "
             "(--null-runs 50 calibrates them for this model and log shape)")
 
 
-def summary(d: Diagnosis, model_out: str | None) -> str:
+def summary(d: Diagnosis, model_out: str | None, cal: NullCalibration | None = None) -> str:
     lines = []
     if d.recalibration is not None:
         lines.append("recalibrated within the model's stated tolerances:")
@@ -203,7 +203,7 @@ def summary(d: Diagnosis, model_out: str | None) -> str:
         lines.append("no missing effect found: no candidate improved the held-out part of "
                      "the log beyond its threshold; the model is left as it is.")
     if d.candidates:
-        lines.append(thresholds_line(d))
+        lines.append(thresholds_line(cal))
     if d.leftover is not None:
         lines.append(d.leftover.describe())
     if d.effects:
@@ -356,7 +356,6 @@ def run(args: argparse.Namespace) -> int:
     cal = null_calibration(meas, args.null_runs, args.jobs)
     d = diagnose(meas, max_effects=args.max_effects,
                  thresholds=None if cal is None else cal.thresholds)
-    d.calibration = cal
     model_out = None
     if d.effects:
         out = Path(args.model_out) if args.model_out else default_model_path(args.log)
@@ -368,8 +367,8 @@ def run(args: argparse.Namespace) -> int:
         write_atomic(out, model_text(meas.model_text, [f.effect for f in d.effects],
                                      f"from {Path(args.log).name}", recal), load_config)
         model_out = str(out)
-    text = summary(d, model_out)
+    text = summary(d, model_out, cal)
     if args.report:
         write_report(Path(args.report), d, meas, text, model_out)
-    print(json.dumps(result_json(d, meas, model_out)) if args.json else text)
+    print(json.dumps(result_json(d, meas, model_out, cal)) if args.json else text)
     return 0
