@@ -394,9 +394,11 @@ def diagnose(meas: Measured, max_effects: int = 4,
                 cost_test = n_test.cost(white_test)
                 k = len(f.effect.free)
                 own = f.effect.held_out_deviance(ev_test)
+                only_own = own is not None and f.effect.own_score_only
+                coherent = deviance(cost0_test, cost_test)
                 penalty = k * math.log(2 * len(w_test.f_hz))
                 cand = Candidate(cls.name, f.effect.values(), deviance(cost0_train, f.cost),
-                                 deviance(cost0_test, cost_test) if own is None else own,
+                                 own if only_own else max(coherent, own or -math.inf),
                                  penalty, sigma=f.sigma, round=len(found),
                                  threshold=max(penalty, (thresholds or {}).get(cls.name, 0.0)))
                 tried.append(cand)
@@ -407,7 +409,7 @@ def diagnose(meas: Measured, max_effects: int = 4,
                     continue
                 if cand.deviance_test <= 0:  # no evidence at any threshold
                     continue
-                if own is not None:  # not a spectral effect: no size in bins to check
+                if only_own:  # the replay cannot weigh it: no size in bins to check
                     cand.size_ok = True
                     if cand.deviance_test > cand.threshold:
                         passed.append((f, cand))
@@ -422,8 +424,9 @@ def diagnose(meas: Measured, max_effects: int = 4,
                 # lines and the resonance; a null log's 64 mV play, by 0.06).
                 fitted = w_test.fitted()
                 n_fit = n_test.restricted(fitted)
-                in_fitted = deviance(n_fit.cost(white0_test[fitted]),
-                                     n_fit.cost(white_test[fitted])) > cand.penalty
+                in_fitted = max(deviance(n_fit.cost(white0_test[fitted]),
+                                         n_fit.cost(white_test[fitted])),
+                                -math.inf if own is None else own) > cand.penalty
                 share = _MIN_NOISE_SHARE_FITTED if in_fitted else _MIN_NOISE_SHARE
                 size = float(np.std(pred.physical_change(f.effect)[w_test.index()]))
                 if size > share * noise:

@@ -60,6 +60,7 @@ class Evidence(Protocol):
     def command_v(self) -> np.ndarray: ...
     def lattice(self) -> tuple[float, float] | None: ...
     def lattice_deviance(self, step_m: float) -> float: ...
+    def line_deviance(self, fx: Effect, f0_hz: float, harmonics: int) -> float: ...
     def modulation_hz(self) -> float | None: ...
     def sensor_path_pull(self, gain_error: float) -> float | None: ...
     def noise_std_m(self) -> float: ...
@@ -79,6 +80,9 @@ class Effect:
     # Only identifiable if the actuator was driven by more than feedback on the residual
     # (a modulation) or the disturbance it fights is modeled (a logged temperature).
     needs_excitation: ClassVar[bool] = False
+    # Its own held-out evidence (`held_out_deviance`) replaces the replay's, and the size
+    # gate with it: the replay cannot weigh the effect at all.
+    own_score_only: ClassVar[bool] = False
 
     def values(self) -> dict[str, Any]:
         return {f.name: getattr(self, f.name) for f in fields(self)}  # type: ignore[arg-type]
@@ -135,8 +139,10 @@ class Effect:
         return []
 
     def held_out_deviance(self, ev: Evidence) -> float | None:
-        """The effect's evidence on held-out data when the replay's likelihood cannot
-        weigh it (None: it can), on the same scale (2 ln of a likelihood ratio)."""
+        """The effect's own evidence on held-out data (None: none but the replay's
+        likelihood), on the same scale (2 ln of a likelihood ratio), from the bins the
+        noise spectrum was fitted to. With `own_score_only` it replaces the replay's,
+        else the better of the two counts."""
         return None
 
     def degenerate(self, ev: Evidence) -> str:
@@ -178,6 +184,8 @@ def waveform(shape: str, cycles: np.ndarray, hold_cycles: float) -> np.ndarray:
 #: MODULATION_HARMONICS-th) is taken for the actuator's response to the modulation.
 LOCKED_REL = 0.005
 MODULATION_HARMONICS = 30
+#: a periodic disturbance's held-out lines are its first this many harmonics
+LINE_HARMONICS = 5
 
 
 @dataclass(frozen=True, slots=True)
@@ -238,6 +246,14 @@ class PeriodicDisturbance(Effect):
                 return (f"its period {self.period_s:.4g} s is the modulation's "
                         f"({1 / f_mod:.4g} s) / {n}: the actuator's response to it")
         return Effect.degenerate(self, ev)
+
+    def held_out_deviance(self, ev: Evidence) -> float | None:
+        """Its lines on the held-out part whatever their phase (`line_deviance`): a cycle
+        whose period wanders by a few per cent (a thermostat's) has lost its phase by
+        then, not its lines (a 128 s sawtooth with 2.9 % jitter: training evidence
+        1,669, held-out 15 in phase). Its first LINE_HARMONICS lines: they hold most of
+        a sawtooth's power, and a wandering period smears the rest."""
+        return ev.line_deviance(self, 1.0 / self.period_s, LINE_HARMONICS)
 
     def describe(self) -> str:
         return (f"periodic disturbance, period {self.period_s:.4g} s, {self.shape}, "
@@ -726,6 +742,7 @@ class AdcQuantization(Effect):
     free: ClassVar[tuple[str, ...]] = ("step_m", "offset_m", "replay_noise_m")
     magnitude: ClassVar[str] = "step_m"
     linear: ClassVar[bool] = False
+    own_score_only: ClassVar[bool] = True
 
     step_m: float = positive(1e-8)
     offset_m: float = 0.0  # where the lattice sits: readings are offset_m + k step_m
