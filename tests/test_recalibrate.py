@@ -156,6 +156,9 @@ class _Spread:
     def modulation_hz(self) -> float:
         return 1.0 / 60.0
 
+    def cooler_hz(self) -> float:
+        return 1.0 / 300.0
+
     pull_limit = 3.0
 
     def sensor_path_pull(self, gain_error: float) -> float:  # recalibrated +1 %, sigma 4.1 %
@@ -182,6 +185,8 @@ def test_degenerate_fits_are_no_evidence() -> None:
     assert "the actuator's response" in PeriodicDisturbance(period_s=60.0 / 7).degenerate(ev)  # type: ignore[arg-type]
     assert PeriodicDisturbance(period_s=60.0 / 7 * 1.02).degenerate(ev) == ""  # type: ignore[arg-type]
     assert PeriodicDisturbance(period_s=97.0).degenerate(ev) == ""  # type: ignore[arg-type]
+    # ... and one on a harmonic of the modelled cooler is that cooler's own waveform.
+    assert "modelled cooler" in PeriodicDisturbance(period_s=150.2).degenerate(ev)  # type: ignore[arg-type]
     # A gain error that leaves the sensor path within the accepted pull is a calibration.
     assert "a calibration, not an effect" in SensorGainError(gain_error=-0.05).degenerate(ev)  # type: ignore[arg-type]
     assert SensorGainError(gain_error=-0.15).degenerate(ev) == ""  # type: ignore[arg-type]

@@ -190,6 +190,11 @@ class Evidence:
                 total += here if here > beside else min(here, 0.0)
         return 2.0 * total / ENBW_BINS
 
+    def cooler_hz(self) -> float | None:
+        """The modelled cooler's fundamental; None if the model has no cooler."""
+        co = self.pred.params.cooler
+        return 1.0 / co.period_s if co.peak_to_peak_rad > 0 else None
+
     def modulation_hz(self) -> float | None:
         """The fundamental of what moved the actuator besides feedback (`excitation_v`):
         its strongest line (`modulation_hz`); None without one."""

@@ -62,6 +62,7 @@ class Evidence(Protocol):
     def lattice_deviance(self, step_m: float) -> float: ...
     def line_deviance(self, fx: Effect, f0_hz: float, harmonics: int) -> float: ...
     def modulation_hz(self) -> float | None: ...
+    def cooler_hz(self) -> float | None: ...
     def sensor_path_pull(self, gain_error: float) -> float | None: ...
     def noise_std_m(self) -> float: ...
     def natural_frequency_hz(self) -> float: ...
@@ -237,14 +238,19 @@ class PeriodicDisturbance(Effect):
     def degenerate(self, ev: Evidence) -> str:
         """A period on a harmonic of the log's modulation is the actuator's response to it
         (a hysteresis or a delay the form cannot hold), not a disturbance: a 0.3 nrad one on
-        the 7th harmonic of a triangle modulation had stood out of the noise."""
-        f_mod = ev.modulation_hz()
-        if f_mod is not None:
-            f = 1.0 / self.period_s
-            n = round(f / f_mod)
-            if 1 <= n <= MODULATION_HARMONICS and abs(f - n * f_mod) <= LOCKED_REL * f:
-                return (f"its period {self.period_s:.4g} s is the modulation's "
-                        f"({1 / f_mod:.4g} s) / {n}: the actuator's response to it")
+        the 7th harmonic of a triangle modulation had stood out of the noise. One on a
+        harmonic of the modelled cooler is that cooler's waveform, not the model's
+        sawtooth: a 299 s one followed a strong hysteresis, its evidence the lines of a
+        cooler of another form."""
+        f = 1.0 / self.period_s
+        for f0, what, why in (
+                (ev.modulation_hz(), "the modulation's", "the actuator's response to it"),
+                (ev.cooler_hz(), "the modelled cooler's", "its waveform, not another one")):
+            if f0 is None:
+                continue
+            n = round(f / f0)
+            if 1 <= n <= MODULATION_HARMONICS and abs(f - n * f0) <= LOCKED_REL * f:
+                return f"its period {self.period_s:.4g} s is {what} ({1 / f0:.4g} s) / {n}: {why}"
         return Effect.degenerate(self, ev)
 
     def held_out_deviance(self, ev: Evidence) -> float | None:
