@@ -13,11 +13,10 @@ a candidate is scored only on what no in-tolerance knob explains. Then, per roun
 3. each fit is scored: the gain in log-likelihood must beat a BIC penalty (k ln n) on the
    training part, and on the held-out part the penalty or, where null logs of the model
    show it too low for the family's search, the threshold calibrated on them
-   (`nullcal`), or the effect is not real; of those that pass,
-   the best must also fit the held-out part on its own with a compatible size (same
-   sign, within 2x); when
-   the best of another family does too and its evidence is within AMBIGUITY, the answer
-   is "ambiguous between A and B" and the search stops there, taking neither;
+   (`nullcal`), or the effect is not real; of those that pass, the best must also fit
+   the held-out part on its own with a compatible size (same sign, within 2x); when the
+   best of another family does too and its evidence is within AMBIGUITY, the answer is
+   "ambiguous between A and B" and the search stops there, taking neither;
 4. the winner is refitted on the whole log, added to the model, and the round repeats;
    when nothing passes, the search stops and says so: no effect is invented.
 Lines left in the held-out residual beyond a look-elsewhere threshold are then reported
@@ -398,7 +397,8 @@ def diagnose(meas: Measured, max_effects: int = 4,
                 coherent = deviance(cost0_test, cost_test)
                 penalty = k * math.log(2 * len(w_test.f_hz))
                 cand = Candidate(cls.name, f.effect.values(), deviance(cost0_train, f.cost),
-                                 own if only_own else max(coherent, own or -math.inf),
+                                 own if only_own else
+                                 max(coherent, -math.inf if own is None else own),
                                  penalty, sigma=f.sigma, round=len(found),
                                  threshold=max(penalty, (thresholds or {}).get(cls.name, 0.0)))
                 tried.append(cand)

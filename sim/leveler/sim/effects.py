@@ -141,9 +141,8 @@ class Effect:
 
     def held_out_deviance(self, ev: Evidence) -> float | None:
         """The effect's own evidence on held-out data (None: none but the replay's
-        likelihood), on the same scale (2 ln of a likelihood ratio), from the bins the
-        noise spectrum was fitted to. With `own_score_only` it replaces the replay's,
-        else the better of the two counts."""
+        likelihood), on the same scale (2 ln of a likelihood ratio). With
+        `own_score_only` it replaces the replay's, else the better of the two counts."""
         return None
 
     def degenerate(self, ev: Evidence) -> str:
