@@ -57,8 +57,8 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
                    "it. About 5-20 s per run and core for a 3 h log at 10 Hz; 50 is a good "
                    "number. 0 (default): use a cached calibration if there is one, else a "
                    "BIC penalty per family")
-    p.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
-                   help="processes for the null runs (default: %(default)s, the cores)")
+    p.add_argument("--jobs", type=int, default=None,
+                   help="processes for the null runs (default: one per core)")
     p.add_argument("--json", action="store_true",
                    help="print one JSON object: effects, gap_before, gap_after, model_out, "
                    "and every candidate tried with its scores")
@@ -323,7 +323,7 @@ def _nm(v: float | None) -> str:
     return "n/a" if v is None else f"{v * 1e9:.3g}"
 
 
-def null_calibration(meas: Measured, runs: int, jobs: int) -> NullCalibration | None:
+def null_calibration(meas: Measured, runs: int, jobs: int | None) -> NullCalibration | None:
     """The cached calibration for this log's model and shape, made now (and cached) if
     `runs` asks for more runs than the cache holds; None without either."""
     from leveler.analysis import nullcal
@@ -334,7 +334,7 @@ def null_calibration(meas: Measured, runs: int, jobs: int) -> NullCalibration | 
     cached = nullcal.load_cached(key)
     if runs == 0 or (cached is not None and cached.runs >= runs):
         return cached
-    cal = nullcal.calibrate(meas, runs, jobs=max(jobs, 1), key=key,
+    cal = nullcal.calibrate(meas, runs, jobs=max(jobs or os.cpu_count() or 1, 1), key=key,
                             progress=nullcal.report_progress)
     path = nullcal.save(cal)
     print(f"leveler diagnose: null calibration of {runs} runs in {cal.wall_s:.0f} s "
