@@ -145,9 +145,12 @@ class _Spread:
     def command_spread_v(self) -> float:
         return self.spread_v
 
-    def command_v(self) -> np.ndarray:
+    def command_blocks_v(self) -> list[np.ndarray]:
         t = self.sig.t_s
-        return 75.0 + self.spread_v / 2 * (2 * np.abs(2 * (t / 60.0 % 1) - 1) - 1)
+        return [75.0 + self.spread_v / 2 * (2 * np.abs(2 * (t / 60.0 % 1) - 1) - 1)]
+
+    def block_gains(self, fx: object) -> list[float]:
+        return [1.0]
 
     @property
     def sig(self) -> Signals:  # a 600 s log
@@ -163,6 +166,38 @@ class _Spread:
 
     def sensor_path_pull(self, gain_error: float) -> float:  # recalibrated +1 %, sigma 4.1 %
         return (1.01 * (1 + gain_error) - 1) / 0.041
+
+
+class _SquareThenLoop(_Spread):
+    """A 3.3 V square modulation block, then a closed-loop block whose command rises
+    25 V (half a day's thermal cycle) with 0.2 V of noise; the fit's evidence in the
+    blocks `gains`."""
+
+    def __init__(self, gains: list[float]) -> None:
+        super().__init__(31.0)
+        self.gains = gains
+
+    def command_blocks_v(self) -> list[np.ndarray]:
+        t = np.arange(0.0, 3600.0, 0.1)
+        square = 75.0 + 3.3 * np.sign(np.sin(2 * np.pi * t / 200.0))
+        loop = (75.0 - 12.5 * np.cos(np.pi * t / 3600.0)
+                + np.random.default_rng(3).normal(0.0, 0.2, t.size))
+        return [square, loop]
+
+    def block_gains(self, fx: object) -> list[float]:
+        return self.gains
+
+
+def test_a_play_is_judged_where_its_evidence_lies() -> None:
+    """Over a square modulation every play is a gain (it turns at each reversal in phase
+    with it, or never): a fit whose evidence all lies there is a gain that differs between
+    the parts of the log (a day's null log of the independent generator, evidence 1,348).
+    On the loop's noisy command a narrow play turns on every reversal: a loop."""
+    for width_v in (0.1, 3.4):
+        assert "a gain, not hysteresis" in ActuatorHysteresis(
+            width_v=width_v, fraction=-0.012).degenerate(_SquareThenLoop([2544.0, 0.0]))  # type: ignore[arg-type]
+    assert ActuatorHysteresis(width_v=0.1, fraction=0.1).degenerate(
+        _SquareThenLoop([0.0, 300.0])) == ""  # type: ignore[arg-type]
 
 
 def test_degenerate_fits_are_no_evidence() -> None:

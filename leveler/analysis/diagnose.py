@@ -368,8 +368,8 @@ def diagnose(meas: Measured, max_effects: int = 4,
         cost0_train = n_train.cost(w_train.whiten(meas.y_m - pred.base.y_m))
         white0_test = w_test.whiten(meas.y_m - pred.base.y_m)
         cost0_test = n_test.cost(white0_test)
-        ev = Evidence(meas, pred, w_train)
-        ev_test = Evidence(meas, pred, w_test)
+        ev = Evidence(meas, pred, w_train, nuisance)
+        ev_test = Evidence(meas, pred, w_test, nuisance)
         passed: list[tuple[Fit, Candidate]] = []
         for cls in EFFECTS.values():
             if getattr(pred.effects, cls.name) is not None:
@@ -469,8 +469,12 @@ def diagnose(meas: Measured, max_effects: int = 4,
         # and the effect's fit on that biased baseline is refined with it.
         plant = dataclasses.replace(meas.config.plant,
                                     effects=pred.effects.with_effect(final.effect))
-        pred, recal, nuisance = _recalibrated(meas, plant, whole, act_excited,
-                                              final.effect)
+        refined = _recalibrated(meas, plant, whole, act_excited, final.effect)
+        if getattr(refined[0].effects, final.effect.name).degenerate(ev):
+            # the refinement wandered where no held-out fit went (a day's null log: a
+            # 3.4 V play became 37 V, a gain): the knobs are refitted around the fit
+            refined = _recalibrated(meas, plant, whole, act_excited)
+        pred, recal, nuisance = refined
         found.append(Found(getattr(pred.effects, final.effect.name).canonical(), sigma,
                            cand.deviance_test))
     pred, recal, nuisance = _settled(meas, pred, recal, nuisance, whole)

@@ -14,6 +14,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.ndimage import median_filter
 
+from leveler.analysis.nuisance import Nuisance
 from leveler.analysis.predict import Measured, Predictor, excitation_v
 from leveler.analysis.recalibrate import PULL_LIMIT
 from leveler.analysis.whittle import ENBW_BINS, EXTRAPOLATED_BINS, Blocks, hann
@@ -34,11 +35,13 @@ LINE_OFFSET_BINS = 3
 
 
 class Evidence:
-    def __init__(self, meas: Measured, pred: Predictor, blocks: Blocks) -> None:
+    def __init__(self, meas: Measured, pred: Predictor, blocks: Blocks,
+                 nuisance: Nuisance | None = None) -> None:
         self.meas = meas
         self.sig = meas.sig
         self.pred = pred
         self.w = blocks
+        self.nuisance = nuisance
         # Lines are read off the longest block alone: one frequency grid, the finest.
         self.spec = blocks.longest
         self.residual = meas.y_m - pred.base.y_m
@@ -127,12 +130,24 @@ class Evidence:
 
     def command_spread_v(self) -> float:
         """How far the actuator voltage moved (5th to 95th percentile) over the blocks."""
-        u = self.command_v()
+        u = self.meas.u_v[self.w.index()]
         return float(np.percentile(u, 95) - np.percentile(u, 5))
 
-    def command_v(self) -> np.ndarray:
-        """The actuator voltage over the blocks."""
-        return self.meas.u_v[self.w.index()]
+    def command_blocks_v(self) -> list[np.ndarray]:
+        """The actuator voltage, block by block (each within one part of the log)."""
+        return self._spans(self.meas.u_v)
+
+    def block_gains(self, fx: Effect) -> list[float]:
+        """What the effect takes off the whitened cost in each block (none below 0), the
+        recalibrated knobs solved out in each: where its evidence lies. (Without them an
+        offset the effect adds would cost it everything in the lowest bins.)"""
+        after = self.meas.y_m - self.pred.with_candidate(fx)
+        gains = []
+        for p in self.w.parts:
+            cost = (self.nuisance.on(p).cost if self.nuisance is not None
+                    else lambda e: float(e @ e))
+            gains.append(max(0.0, cost(p.whiten(self.residual)) - cost(p.whiten(after))))
+        return gains
 
     def lattice(self) -> tuple[float, float] | None:
         """(step, offset) if the readings sit on a lattice clearly coarser than the model's
