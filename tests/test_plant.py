@@ -249,6 +249,15 @@ def test_a_slewing_piezo_is_felt_by_its_mean_over_the_step() -> None:
     v, lag = slewed(np.array([0.0, 0.0, 25.0, 25.0, 25.0]), 10.0)
     assert v.tolist() == [0.0, 0.0, 10.0, 20.0, 25.0]
     assert lag.tolist() == pytest.approx([0.0, 0.0, 5.0, 5.0, 1.25])
+    # Steps beyond the slew among small ones, in both directions and back to back: the
+    # same as the amplifier stepped sample by sample.
+    rng = np.random.default_rng(11)
+    u = np.cumsum(rng.normal(0.0, 1.0, 5000) * (1 + 30 * (rng.random(5000) < 0.02)))
+    walked, prev = [], u[0]
+    for target in u:
+        prev += min(max(target - prev, -10.0), 10.0)
+        walked.append(prev)
+    assert slewed(u, 10.0)[0] == pytest.approx(np.array(walked), abs=1e-9)
     plant = Plant(build(PlantParams, QUIET), dt_s=0.1)
     twin = Plant(build(PlantParams, QUIET), dt_s=0.1)
     plant.command(plant.v_applied + 5.0)

@@ -145,10 +145,8 @@ def _pendulum_shape(pred: Predictor, meas: Measured, f_hz: np.ndarray) -> np.nda
 
 
 def make_whitener(meas: Measured, pred: Predictor, span: slice) -> Whitener:
-    n = len(meas.y_m)
-    length = len(range(*span.indices(n)))
-    f = np.fft.rfftfreq(length, meas.dt_s)
-    w = Whitener(span, n, meas.dt_s, _pendulum_shape(pred, meas, f))
+    w = Whitener(span, len(meas.y_m), meas.dt_s,
+                 functools.partial(_pendulum_shape, pred, meas))
     w.fit_noise(meas.y_m - pred.base.y_m)
     return w
 

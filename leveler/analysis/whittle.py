@@ -15,6 +15,8 @@ gets credit for it.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from scipy.optimize import minimize
 
@@ -92,19 +94,37 @@ class NoiseSpectrum:
         return self.coef @ self.basis
 
 
+def fast_length(n: int) -> int:
+    """The longest length <= n whose prime factors are all <= 11: a block trimmed to it
+    (by under 1 % at the sizes diagnose uses) transforms 10-20x faster than one of a
+    length with a large prime factor, and whitening is most of diagnose's time."""
+    m = n
+    while m > 1:
+        k = m
+        for p in (2, 3, 5, 7, 11):
+            while k % p == 0:
+                k //= p
+        if k == 1:
+            return m
+        m -= 1
+    return n
+
+
 class Whitener:
     """Maps a time-domain residual on one span to a real vector of unit-variance numbers."""
 
     def __init__(self, span: slice, n_total: int, dt_s: float,
-                 pendulum_response: np.ndarray) -> None:
-        """`pendulum_response`: |H(f)/H(0)|^2 of the pendulum on this span's rfft grid."""
-        self.span = span
-        self.n = len(range(*span.indices(n_total)))
+                 pendulum_response: Callable[[np.ndarray], np.ndarray]) -> None:
+        """`pendulum_response(f_hz)`: |H(f)/H(0)|^2 of the pendulum. The span is cut to
+        `fast_length`."""
+        start, stop, _ = span.indices(n_total)
+        self.n = fast_length(stop - start)
+        self.span = slice(start, start + self.n)
         self.dt_s = dt_s
         self.window = hann(self.n)
         self.f_hz = np.fft.rfftfreq(self.n, dt_s)
         self.norm = float(np.sum(self.window**2)) / (2 * dt_s)
-        self.spectrum = NoiseSpectrum(self.f_hz, pendulum_response)
+        self.spectrum = NoiseSpectrum(self.f_hz, pendulum_response(self.f_hz))
         self.weight = np.ones(len(self.f_hz))
 
     def transform(self, x: np.ndarray) -> np.ndarray:
