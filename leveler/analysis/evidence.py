@@ -29,7 +29,7 @@ LINE_LEVEL_BINS = 31
 #: the fewest cycles in a block that make a line
 LINE_MIN_CYCLES = 8
 #: bins either side of a line that `line_deviance` weighs, and how far beside it the
-#: line is tried (2 to this many bins), to see that the power is on it
+#: line is tried, to see that the power is on it
 LINE_WINDOW = 4
 LINE_OFFSET_BINS = 3
 
@@ -173,9 +173,8 @@ class Evidence:
         spectrum: where that spectrum misses the red noise by a factor of 2, a line would
         be found in any power there (an 877 s "disturbance" in a log without its
         temperature: held-out evidence 3,503). A line counts only where the power is on
-        it rather than 2 to LINE_OFFSET_BINS beside it, not where a stronger line's skirt
-        reaches (a 173 s sawtooth scored 752 on a 240 s one's lines without that; a
-        290 s one, 27 % of the right one's with 3 bins beside alone), and
+        it rather than LINE_OFFSET_BINS beside it, not where a stronger line's skirt
+        reaches (a 173 s sawtooth scored 752 on a 240 s one's lines without that), and
         only with at least LINE_MIN_CYCLES cycles in the block, as for `fmin_hz`."""
         change = self.pred.with_candidate(fx) - self.pred.base.y_m
         total = 0.0
@@ -202,7 +201,7 @@ class Evidence:
                 if lo - s < 0 or hi + s >= len(z):
                     continue
                 here = gain(lo, hi, 0)
-                beside = max(gain(lo, hi, k) for k in range(-s, s + 1) if abs(k) > 1)
+                beside = max(gain(lo, hi, -s), gain(lo, hi, s))
                 total += here if here > beside else min(here, 0.0)
         return 2.0 * total / ENBW_BINS
 
