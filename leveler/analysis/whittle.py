@@ -192,7 +192,7 @@ class Blocks:
 
     def index(self) -> np.ndarray:
         """The samples the blocks cover, in order."""
-        return np.concatenate([np.arange(p.span.start, p.span.start + p.n) for p in self.parts])
+        return np.concatenate([np.arange(p.span.start, p.span.stop) for p in self.parts])
 
     def fit_noise(self, residual: np.ndarray) -> None:
         for p in self.parts:
