@@ -12,6 +12,7 @@ import pytest
 
 from leveler.analysis.diagnose import make_blocks, split, warmup_samples
 from leveler.analysis.evidence import Evidence
+from leveler.analysis.nuisance import Nuisance
 from leveler.analysis.predict import Measured, Predictor, load_measured
 from leveler.analysis.synthetic import make_measured
 from leveler.analysis.whittle import deviance
@@ -41,7 +42,7 @@ def _held_out(meas: Measured, added: PeriodicDisturbance | None = None
         pred = Predictor(meas.config.plant, meas)
     _, test = split(meas, warmup_samples(meas, pred))
     w = make_blocks(meas, pred, test)
-    return (Evidence(meas, pred, w), w.whiten(meas.y_m - pred.base.y_m),
+    return (Evidence(meas, pred, w, Nuisance(pred, None, meas)), w.whiten(meas.y_m - pred.base.y_m),
             w.whiten(pred.with_candidate(SAW) - pred.base.y_m))
 
 

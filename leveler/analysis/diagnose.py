@@ -392,11 +392,11 @@ def diagnose(meas: Measured, max_effects: int = 4,
                 k = len(f.effect.free)
                 own = f.effect.held_out_deviance(ev_test)
                 only_own = own is not None and f.effect.own_score_only
+                own_score = -math.inf if own is None else own
                 coherent = deviance(cost0_test, cost_test)
                 penalty = k * math.log(2 * len(w_test.f_hz))
                 cand = Candidate(cls.name, f.effect.values(), deviance(cost0_train, f.cost),
-                                 own if only_own else
-                                 max(coherent, -math.inf if own is None else own),
+                                 own_score if only_own else max(coherent, own_score),
                                  penalty, sigma=f.sigma, round=len(found),
                                  threshold=max(penalty, (thresholds or {}).get(cls.name, 0.0)))
                 tried.append(cand)
@@ -424,7 +424,7 @@ def diagnose(meas: Measured, max_effects: int = 4,
                 n_fit = n_test.restricted(fitted)
                 in_fitted = max(deviance(n_fit.cost(white0_test[fitted]),
                                          n_fit.cost(white_test[fitted])),
-                                -math.inf if own is None else own) > cand.penalty
+                                own_score) > cand.penalty
                 share = _MIN_NOISE_SHARE_FITTED if in_fitted else _MIN_NOISE_SHARE
                 size = float(np.std(pred.physical_change(f.effect)[w_test.index()]))
                 if size > share * noise:

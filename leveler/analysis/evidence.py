@@ -36,7 +36,7 @@ LINE_OFFSET_BINS = 3
 
 class Evidence:
     def __init__(self, meas: Measured, pred: Predictor, blocks: Blocks,
-                 nuisance: Nuisance | None = None) -> None:
+                 nuisance: Nuisance) -> None:
         self.meas = meas
         self.sig = meas.sig
         self.pred = pred
@@ -144,8 +144,7 @@ class Evidence:
         after = self.meas.y_m - self.pred.with_candidate(fx)
         gains = []
         for p in self.w.parts:
-            cost = (self.nuisance.on(p).cost if self.nuisance is not None
-                    else lambda e: float(e @ e))
+            cost = self.nuisance.on(p).cost
             gains.append(max(0.0, cost(p.whiten(self.residual)) - cost(p.whiten(after))))
         return gains
 
