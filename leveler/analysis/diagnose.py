@@ -49,7 +49,8 @@ from leveler.analysis.predict import (
     sensor_noise_m,
 )
 from leveler.analysis.recalibrate import Recalibration, apply, recalibrate
-from leveler.analysis.whittle import ENBW_BINS, Blocks, Whitener, deviance
+from leveler.analysis.told import red_ceiling
+from leveler.analysis.whittle import ENBW_BINS, Blocks, Whitener, deviance, hann
 from leveler.sim.effects import EFFECTS, Effect, EffectsParams
 from leveler.sim.params import PlantParams
 
@@ -146,7 +147,8 @@ def _pendulum_shape(pred: Predictor, meas: Measured, f_hz: np.ndarray) -> np.nda
 
 def make_whitener(meas: Measured, pred: Predictor, span: slice) -> Whitener:
     w = Whitener(span, len(meas.y_m), meas.dt_s,
-                 functools.partial(_pendulum_shape, pred, meas))
+                 functools.partial(_pendulum_shape, pred, meas),
+                 red_ceiling(pred.params, meas.sig.temperature_k is not None))
     w.fit_noise(meas.y_m - pred.base.y_m)
     return w
 
@@ -569,7 +571,6 @@ def gap(meas: Measured, pred: Predictor, span: slice,
     r = residual(meas, pred, span)
     y = meas.y_m[span] - meas.y_m[span].mean()
     dt = meas.dt_s
-    from leveler.analysis.whittle import hann
 
     win = hann(len(r))
     p = np.abs(np.fft.rfft(win * r)) ** 2 * 2 * dt / np.sum(win**2)

@@ -58,6 +58,11 @@ class NoiseSpectrum:
             keep = use & ~out
         return s
 
+    def flat(self) -> np.ndarray:
+        """The fitted spectrum's terms that are not red: white, and tilt noise through the
+        pendulum (flat below its resonance)."""
+        return self.coef[0] * self.basis[0] + self.coef[3] * self.basis[3]
+
     def _far_above_octave_median(self, p: np.ndarray) -> np.ndarray:
         """Bins 20x above the median of their octave: a first, fit-free guess at the lines
         (a sawtooth's comb of harmonics would otherwise pass for a 1/f^2 noise)."""
@@ -114,8 +119,12 @@ class Whitener:
     """Maps a time-domain residual on one span to a real vector of unit-variance numbers."""
 
     def __init__(self, span: slice, n_total: int, dt_s: float,
-                 pendulum_response: Callable[[np.ndarray], np.ndarray]) -> None:
-        """`pendulum_response(f_hz)`: |H(f)/H(0)|^2 of the pendulum. The span is cut to
+                 pendulum_response: Callable[[np.ndarray], np.ndarray],
+                 red_ceiling: Callable[[int, float, np.ndarray], np.ndarray] | None = None
+                 ) -> None:
+        """`pendulum_response(f_hz)`: |H(f)/H(0)|^2 of the pendulum. `red_ceiling(n, dt_s,
+        bins)`: the most red noise [m^2/Hz] the model's stated noise terms allow in those
+        bins of a block, if it states them (`leveler.analysis.told`). The span is cut to
         `fast_length`."""
         start, stop, _ = span.indices(n_total)
         self.n = fast_length(stop - start)
@@ -125,6 +134,8 @@ class Whitener:
         self.f_hz = np.fft.rfftfreq(self.n, dt_s)
         self.norm = float(np.sum(self.window**2)) / (2 * dt_s)
         self.spectrum = NoiseSpectrum(self.f_hz, pendulum_response(self.f_hz))
+        self.ceiling = (None if red_ceiling is None else
+                        red_ceiling(self.n, dt_s, np.flatnonzero(self.extrapolated())))
         self.weight = np.ones(len(self.f_hz))
 
     def transform(self, x: np.ndarray) -> np.ndarray:
@@ -140,6 +151,12 @@ class Whitener:
         p = self.periodogram(residual)
         use = ~self.extrapolated()
         s = self.spectrum.fit(p, use)
+        if self.ceiling is not None:
+            # The lowest bins get the fit's extrapolation, and a steep red term fitted to
+            # the leakage of a trend extrapolates to whiten the trend away: no more red
+            # noise there than the stated terms allow.
+            low = ~use
+            s[low] = np.minimum(s[low], self.spectrum.flat()[low] + self.ceiling)
         self.psd = s
         self.weight = minimum_phase(1.0 / np.sqrt(s * self.norm), self.n)
         self.weight[0] = 0.0  # the mean: removed before the window, carries nothing
