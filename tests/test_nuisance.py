@@ -65,3 +65,19 @@ def test_restricted_to_bins_equals_the_problem_on_those_bins() -> None:
     beta_b, e_b = Projection(g, p, q).residual(white, c, (-1.0, 0.1))
     assert beta_b == 0.1
     np.testing.assert_allclose(e_b, Projection(g, p, q).residual(white - 0.1 * c)[1])
+
+
+def test_extended_columns_are_free_beside_the_knobs() -> None:
+    """A start state added to tight knobs is solved as plain least squares would, the
+    knobs still pinned; with no knobs at all it is the state alone."""
+    g, c, white = _problem(3)
+    state = np.random.default_rng(4).standard_normal(400)
+    white = white + 2.5 * state
+    tight = Projection(g, ROOT / np.array([1e-9, 1e-9]), np.zeros(2))
+    beta, _ = tight.extended(state[:, None]).residual(white, c)
+    full, *_ = np.linalg.lstsq(np.column_stack([c, state]), white, rcond=None)
+    assert beta == pytest.approx(full[0], rel=1e-6)
+    empty = Projection(np.zeros((0, 0)), np.zeros(0), np.zeros(0))
+    alone = empty.extended(state[:, None])
+    assert alone.knobs(white) == pytest.approx([float(state @ white) / float(state @ state)],
+                                               rel=1e-6)

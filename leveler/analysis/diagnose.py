@@ -40,7 +40,7 @@ from scipy.signal import freqz
 
 from leveler.analysis.evidence import Evidence
 from leveler.analysis.leftover import Leftover, leftover
-from leveler.analysis.nuisance import Nuisance, Projection
+from leveler.analysis.nuisance import Nuisance, Projection, with_states
 from leveler.analysis.predict import (
     Measured,
     Predictor,
@@ -226,6 +226,7 @@ def fit_effect(start: Effect, pred: Predictor, w: Whitener | Blocks, meas: Measu
     def solve(x: np.ndarray, proj: Projection = nuis, keep: Any = slice(None)
               ) -> tuple[np.ndarray, Effect]:
         fx = shaped(x)
+        proj = with_states(proj, w, pred, fx, keep)
         if mag is None:
             return proj.residual(w.whiten(y - pred.with_candidate(fx))[keep])[1], fx
         c = w.whiten(pred.with_candidate(fx.replace(**{mag: unit})) - pred.base.y_m)[keep]
@@ -275,7 +276,9 @@ def _sigma(fx: Effect, pred: Predictor, w: Whitener | Blocks, meas: Measured,
         v = float(getattr(fx, k))
         if v + h > hi:
             h = -h
-        plus = nuis.residual(w.whiten(meas.y_m - pred.with_candidate(fx.replace(**{k: v + h}))))
+        moved = fx.replace(**{k: v + h})
+        plus = with_states(nuis, w, pred, moved).residual(
+            w.whiten(meas.y_m - pred.with_candidate(moved)))
         cols.append((plus[1] - e) / h)
     jac = np.array(cols).T
     s2 = float(e @ e) / max(len(e) - len(keys), 1) * ENBW_BINS
@@ -389,8 +392,9 @@ def diagnose(meas: Measured, max_effects: int = 4,
                     tried.append(Candidate(cls.name, f.effect.values(), 0.0, 0.0, 0.0,
                                            note=f"rejected: {why}", round=len(found)))
                     continue
+                n_cand = with_states(n_test, w_test, pred, f.effect)
                 white_test = w_test.whiten(meas.y_m - pred.with_candidate(f.effect))
-                cost_test = n_test.cost(white_test)
+                cost_test = n_cand.cost(white_test)
                 k = len(f.effect.free)
                 own = f.effect.held_out_deviance(ev_test)
                 only_own = own is not None and f.effect.own_score_only
@@ -423,9 +427,8 @@ def diagnose(meas: Measured, max_effects: int = 4,
                 # hold it (a 32 ms delay moves it by 0.4 of the noise at the modulation's
                 # lines and the resonance; a null log's 64 mV play, by 0.06).
                 fitted = w_test.fitted()
-                n_fit = n_test.restricted(fitted)
-                in_fitted = max(deviance(n_fit.cost(white0_test[fitted]),
-                                         n_fit.cost(white_test[fitted])),
+                in_fitted = max(deviance(n_test.restricted(fitted).cost(white0_test[fitted]),
+                                         n_cand.restricted(fitted).cost(white_test[fitted])),
                                 own_score) > cand.penalty
                 share = _MIN_NOISE_SHARE_FITTED if in_fitted else _MIN_NOISE_SHARE
                 size = float(np.std(pred.physical_change(f.effect)[w_test.index()]))
@@ -519,7 +522,7 @@ def _settled(meas: Measured, pred: Predictor, recal: Recalibration | None, nuisa
     if recal is None or not nuisance.names:
         return pred, recal, nuisance
     w = make_whitener(meas, pred, whole)
-    d = nuisance.on(w).knobs(w.whiten(meas.y_m - pred.base.y_m))
+    d = nuisance.on(w).knobs(w.whiten(meas.y_m - pred.base.y_m))[:len(nuisance.knobs)]
     params = apply(pred.params, nuisance.knobs, d)
     offset = dict(recal.offset)
     for k, dk in zip(nuisance.knobs, d, strict=True):

@@ -15,17 +15,32 @@ enough to run in every cost evaluation. The resonance frequency and Q are not li
 linearized they let a candidate trade its timing for a resonance (a sawtooth's drop 5 ms
 late "explained" by a Q 13 % high): they stay at their recalibrated values in a fit and
 are recalibrated again once an effect is found.
+
+The lags' states at the log's start (the table's thermal lag, a found coupling's) are
+columns too, with no prior: the replay fits them once, to the baseline's residual, and a
+candidate that shares their slow shape (a sensor drift against a log that starts out of
+equilibrium) would otherwise be judged against a start the baseline bent towards itself
+(a strong drift's rate came out at a third of the truth, -231 held out; refitted with the
+state, at the truth, +318).
 """
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
-from leveler.analysis.predict import Measured, Predictor
+from leveler.analysis.predict import Measured, Predictor, sensor_noise_m
 from leveler.analysis.recalibrate import Recalibration, apply
-from leveler.analysis.whittle import ENBW_BINS, Whitener
+from leveler.analysis.whittle import ENBW_BINS, Blocks, Whitener
+from leveler.sim.effects import Effect
 
 _STEP = 0.1  # finite-difference step, in prior sigmas
+#: A start state's column moves the reading by the sensor noise per unit; a ridge (a prior
+#: of this many of those, 1-sigma) only keeps the solve regular when a state's shape has
+#: decayed before a block begins.
+_STATE_SIGMA = 1e4
+_FREE = np.sqrt(ENBW_BINS / 2) / _STATE_SIGMA  # that prior's gain, in the whitened cost
 LINEAR = ("sensor_path", "actuator_path", "thermal_tilt", "cooler_amplitude")
 
 
@@ -42,7 +57,8 @@ class Nuisance:
             step = np.where(np.arange(len(ks)) == i, h, 0.0)
             moved = Predictor(apply(pred.params, ks, step), meas)
             cols.append((moved.base.y_m - pred.base.y_m) / h)
-        self.columns = np.array(cols).reshape(len(ks), len(meas.y_m))
+        states = _scaled(pred, pred.start_shapes(pred.effects))
+        self.columns = np.array(cols + states).reshape(len(ks) + len(states), len(meas.y_m))
         # A prior on the total offset from nominal, x + d (1 + x) with d the relative change
         # about the recalibrated value x, in the whitened cost's units (-2 log p = z^2 and a
         # cost is ENBW_BINS / 2 of -2 log-likelihood).
@@ -51,22 +67,50 @@ class Nuisance:
         sigma = np.array([k.sigma for k in ks])
         self.prior_gain = root * (1 + np.asarray(x)) / sigma if ks else np.zeros(0)
         self.prior_shift = root * np.asarray(x) / sigma if ks else np.zeros(0)
+        self.states = len(states)
 
     def on(self, w: Whitener) -> Projection:
         return Projection(np.array([w.whiten(c) for c in self.columns]).T
-                          if len(self.names) else np.zeros((0, 0)),
-                          self.prior_gain, self.prior_shift)
+                          if len(self.columns) else np.zeros((0, 0)),
+                          self.prior_gain, self.prior_shift, self.states)
+
+
+def _scaled(pred: Predictor, shapes: list[np.ndarray]) -> list[np.ndarray]:
+    """Start-state shapes rescaled to move the reading by the sensor noise (rms) per unit."""
+    noise = sensor_noise_m(pred.params, pred.meas.dt_s)
+    return [s * (noise / rms) for s in shapes if (rms := float(np.sqrt(np.mean(s**2)))) > 0]
+
+
+def with_states(proj: Projection, w: Whitener | Blocks, pred: Predictor, fx: Effect,
+                keep: Any = slice(None)) -> Projection:
+    """`proj` with the candidate's own start states (`Predictor.state_shapes`) free beside
+    the knobs, on the whitened numbers `keep`. Fitted by plain least squares on the raw
+    residual instead, a coupling's start took up slow structure the calibration left
+    and turned the fit's sign (a 2.6 urad/K coupling fitted at -3.3, worse than none by
+    714 where the truth gains 559)."""
+    states = _scaled(pred, pred.state_shapes(fx))
+    if not states:
+        return proj
+    return proj.extended(np.array([w.whiten(s)[keep] for s in states]).T)
 
 
 class Projection:
     """The nuisance columns whitened on one span: residuals with the knobs solved out."""
 
-    def __init__(self, g: np.ndarray, prior_gain: np.ndarray, prior_shift: np.ndarray):
+    def __init__(self, g: np.ndarray, prior_gain: np.ndarray, prior_shift: np.ndarray,
+                 free: int = 0) -> None:
+        """Columns of `g`: the knobs with their priors, then `free` ones without (start
+        states). A free column adds no row to the residual, so the residual's length does
+        not change with how many a candidate has (a least-squares fit needs it fixed)."""
         self.g = g
-        self.k = len(prior_gain)
+        self.k = len(prior_gain) + free
+        self.free = free
         self.p = prior_gain
         self.q = prior_shift
-        self.gtg = g.T @ g + np.diag(prior_gain**2) if self.k else np.zeros((0, 0))
+        # the free columns' tiny ridge only keeps the solve regular
+        ridge = np.concatenate([prior_gain**2, np.full(free, _FREE**2)])
+        self.gtg = g.T @ g + np.diag(ridge) if self.k else np.zeros((0, 0))
+        self.shift = np.concatenate([prior_gain * prior_shift, np.zeros(free)])
 
     def residual(self, white: np.ndarray, c: np.ndarray | None = None,
                  bounds: tuple[float, float] | None = None) -> tuple[float, np.ndarray]:
@@ -81,7 +125,7 @@ class Projection:
         else:
             gc = self.g.T @ c
             a = np.block([[np.array([[c @ c]]), gc[None, :]], [gc[:, None], self.gtg]])
-            b = np.concatenate([[c @ white], self.g.T @ white - self.p * self.q])
+            b = np.concatenate([[c @ white], self.g.T @ white - self.shift])
             try:
                 beta = float(np.linalg.solve(a, b)[0])
             except np.linalg.LinAlgError:
@@ -90,21 +134,27 @@ class Projection:
             beta = min(max(beta, bounds[0]), bounds[1])
         return beta, self._solve_d(white - beta * c)
 
+    def extended(self, cols: np.ndarray) -> Projection:
+        """These knobs and, free, the whitened columns `cols` (one per column)."""
+        g = cols if self.k == 0 else np.hstack([self.g, cols])
+        return Projection(g, self.p, self.q, self.free + cols.shape[1])
+
     def restricted(self, keep: np.ndarray) -> Projection:
         """The same knobs on a subset of the whitened numbers (a coarse fit's low bins)."""
-        return Projection(self.g[keep] if self.k else self.g, self.p, self.q)
+        return Projection(self.g[keep] if self.k else self.g, self.p, self.q, self.free)
 
     def knobs(self, white: np.ndarray) -> np.ndarray:
-        """The knobs' relative changes d that best explain `white` under their priors."""
+        """The knobs' relative changes d that best explain `white` under their priors (the
+        calibration knobs first, then the start states')."""
         if self.k == 0:
             return np.zeros(0)
-        return np.linalg.solve(self.gtg, self.g.T @ white - self.p * self.q)
+        return np.linalg.solve(self.gtg, self.g.T @ white - self.shift)
 
     def _solve_d(self, white: np.ndarray) -> np.ndarray:
         if self.k == 0:
             return white
         d = self.knobs(white)
-        return np.concatenate([white - self.g @ d, self.q + self.p * d])
+        return np.concatenate([white - self.g @ d, self.q + self.p * d[:len(self.p)]])
 
     def cost(self, white: np.ndarray) -> float:
         e = self._solve_d(white)

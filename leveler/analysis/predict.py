@@ -269,11 +269,24 @@ class Predictor:
         x = self.pend(phi)
         for fx in effects.of("response"):
             x = x + fx.response(phi_u, self.static_m_per_rad, sig)  # type: ignore[attr-defined]
-        shapes = [] if self._transient is None else [self._transient]
-        shapes += [self.pend(s) for fx in effects.of("tilt") for s in fx.start_shapes(sig)]
+        shapes = self.start_shapes(effects)
         if shapes:
             x = x + self._start_state(self._sensor(x, effects), np.column_stack(shapes))
         return Prediction(x, self._sensor(x, effects), phi_u)
+
+    def start_shapes(self, effects: EffectsParams) -> list[np.ndarray]:
+        """Displacements [m] that the lags' unknown states at the log's start add, per unit
+        state: the table's thermal lag, and those of `effects`."""
+        shapes = [] if self._transient is None else [self._transient]
+        return shapes + [self.pend(s) for fx in effects.of("tilt")
+                         for s in fx.start_shapes(self.meas.sig)]
+
+    def state_shapes(self, fx: Effect) -> list[np.ndarray]:
+        """Displacements [m] per unit of a candidate's own start states (a coupling's lags
+        that had not settled), for a fit to solve with the other nuisances."""
+        if fx.stage != "tilt":
+            return []
+        return [self.pend(s) for s in fx.start_shapes(self.meas.sig)]
 
     def _start_state(self, y_pred: np.ndarray, shapes: np.ndarray) -> np.ndarray:
         """The lags' unknown states at the log's start (the table's thermal lag, an
@@ -300,13 +313,12 @@ class Predictor:
     def with_candidate(self, fx: Effect) -> np.ndarray:
         """Predicted reading of the base effects plus (or with this one replaced by) `fx`.
 
-        Tilt and response effects add linearly to the cached base; actuator effects are
-        non-linear (hysteresis) and, like an effect with a start state to fit, replay in
-        full.
+        Tilt and response effects add linearly to the cached base, a lag of their own
+        settled at the first sample (its unknown start is the fit's: `state_shapes`);
+        actuator effects are non-linear (hysteresis) and replay in full.
         """
         merged = self.effects.with_effect(fx)
-        if (fx.stage == "actuator" or getattr(self.effects, fx.name) is not None
-                or fx.start_shapes(self.meas.sig)):  # its start is fitted with the others'
+        if fx.stage == "actuator" or getattr(self.effects, fx.name) is not None:
             return self.predict(merged).y_m
         x = self.base.x_m
         if fx.stage == "tilt":
