@@ -21,6 +21,7 @@ from leveler.settings import Config, load_config
 from leveler.sim.effects import (
     ActuatorDelay,
     ActuatorHysteresis,
+    ExtraResonance,
     PeriodicDisturbance,
     SensorGainError,
     Signals,
@@ -167,6 +168,9 @@ class _Spread:
     def sensor_path_pull(self, gain_error: float) -> float:  # recalibrated +1 %, sigma 4.1 %
         return (1.01 * (1 + gain_error) - 1) / 0.041
 
+    def natural_frequency_hz(self) -> float:
+        return 0.73
+
 
 class _SquareThenLoop(_Spread):
     """A 3.3 V square modulation block, then a closed-loop block whose command rises
@@ -228,6 +232,11 @@ def test_degenerate_fits_are_no_evidence() -> None:
     # A delay under a tenth of a sample is sampling and hold.
     assert "sampling and hold" in ActuatorDelay(delay_s=0.003).degenerate(ev)  # type: ignore[arg-type]
     assert ActuatorDelay(delay_s=0.04).degenerate(ev) == ""  # type: ignore[arg-type]
+    # A mode whose band reaches near the pendulum's resonance (0.73 Hz) is its f0 or Q.
+    near = ExtraResonance(frequency_hz=0.885, q=8.6, gain=-0.97).degenerate(ev)  # type: ignore[arg-type]
+    assert "its frequency or Q, not a mode" in near
+    assert ExtraResonance(frequency_hz=0.9, q=40.0, gain=-0.5).degenerate(ev) == ""  # type: ignore[arg-type]
+    assert ExtraResonance(frequency_hz=1.6, q=8.6, gain=0.2).degenerate(ev) == ""  # type: ignore[arg-type]
     # A lag over 3x the log is a trend (and its start state a free straight line).
     assert TemperatureCoupling(lag_s=1500.0).degenerate(ev) == ""  # type: ignore[arg-type]
     for lags in ({"lag_s": 2000.0}, {"lag_s": 300.0, "lag2_s": 2000.0}):
