@@ -586,7 +586,6 @@ def gap(meas: Measured, pred: Predictor, span: slice,
     r = residual(meas, pred, span)
     y = meas.y_m[span] - meas.y_m[span].mean()
     dt = meas.dt_s
-
     win = hann(len(r))
     p = np.abs(np.fft.rfft(win * r)) ** 2 * 2 * dt / np.sum(win**2)
     f = np.fft.rfftfreq(len(r), dt)

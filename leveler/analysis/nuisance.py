@@ -16,12 +16,13 @@ linearized they let a candidate trade its timing for a resonance (a sawtooth's d
 late "explained" by a Q 13 % high): they stay at their recalibrated values in a fit and
 are recalibrated again once an effect is found.
 
-The lags' states at the log's start (the table's thermal lag, a found coupling's) are
-columns too, with no prior: the replay fits them once, to the baseline's residual, and a
-candidate that shares their slow shape (a sensor drift against a log that starts out of
-equilibrium) would otherwise be judged against a start the baseline bent towards itself
-(a strong drift's rate came out at a third of the truth, -231 held out; refitted with the
-state, at the truth, +318).
+The lags' states at the log's start (the table's thermal lag, a found coupling's, and a
+candidate coupling's own: `with_states`) are columns too, with no prior: the replay fits
+them once, to the baseline's residual, and a candidate that shares their slow shape (a
+sensor drift against a log that starts out of equilibrium) would otherwise be judged
+against a start the baseline bent towards itself (a strong drift's rate came out at a
+third of the truth, held-out evidence -231; solved with the state, -2.7e-11 m/s against
+the truth's mean -2.8e-11, held-out +44).
 """
 
 from __future__ import annotations

@@ -278,12 +278,11 @@ class Predictor:
         """Displacements [m] that the lags' unknown states at the log's start add, per unit
         state: the table's thermal lag, and those of `effects`."""
         shapes = [] if self._transient is None else [self._transient]
-        return shapes + [self.pend(s) for fx in effects.of("tilt")
-                         for s in fx.start_shapes(self.meas.sig)]
+        return shapes + [s for fx in effects.of("tilt") for s in self.state_shapes(fx)]
 
     def state_shapes(self, fx: Effect) -> list[np.ndarray]:
-        """Displacements [m] per unit of a candidate's own start states (a coupling's lags
-        that had not settled), for a fit to solve with the other nuisances."""
+        """Displacements [m] per unit of one effect's own start states (a coupling's lags
+        that had not settled): a candidate's, for a fit to solve with the nuisances."""
         if fx.stage != "tilt":
             return []
         return [self.pend(s) for s in fx.start_shapes(self.meas.sig)]
