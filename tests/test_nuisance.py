@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from leveler.analysis.nuisance import Projection
+from leveler.analysis.nuisance import Projection, predictive_cost
 from leveler.analysis.whittle import ENBW_BINS
 
 ROOT = np.sqrt(ENBW_BINS / 2)
@@ -81,3 +81,29 @@ def test_extended_columns_are_free_beside_the_knobs() -> None:
     alone = empty.extended(state[:, None])
     assert alone.knobs(white) == pytest.approx([float(state @ white) / float(state @ state)],
                                                rel=1e-6)
+
+
+def test_held_out_cost_keeps_the_knobs_the_training_part_allows() -> None:
+    """A free trend column (a lag's start state): on the training part the data has
+    none. Solved on the held-out part alone it takes up a trend that appears only there,
+    and the baseline is left with nothing to explain; given the training part it may not,
+    and the trend stays in the held-out cost. Where both parts agree, the held-out cost
+    is that of the knobs the training part fits (about one per number)."""
+    rng = np.random.default_rng(5)
+    n = 600
+    ramp = np.linspace(-1.0, 1.0, 2 * n)[:, None]
+    g_train, g_test = ramp[:n], ramp[n:]
+    train = Projection(g_train, np.zeros(0), np.zeros(0), free=1)
+    test = Projection(g_test, np.zeros(0), np.zeros(0), free=1)
+    noise_train, noise_test = rng.standard_normal(n), rng.standard_normal(n)
+    trend = 20.0 * (g_test[:, 0] - g_test[0, 0])  # only in the held-out part
+    alone = test.cost(noise_test + trend)
+    given = predictive_cost(train, test, noise_train, noise_test + trend)
+    assert alone < 1.5 * n  # re-solved there, the ramp's trend is mostly gone
+    assert given > 10 * n  # the training part pins the ramp: the trend is left
+    agreeing = predictive_cost(train, test, noise_train + 3.0 * g_train[:, 0],
+                               noise_test + 3.0 * g_test[:, 0])
+    assert agreeing == pytest.approx(float(noise_test @ noise_test), rel=0.05)
+    none = Projection(np.zeros((0, 0)), np.zeros(0), np.zeros(0))
+    assert predictive_cost(none, none, noise_train, noise_test) == pytest.approx(
+        float(noise_test @ noise_test))

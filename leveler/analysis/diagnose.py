@@ -40,7 +40,7 @@ from scipy.signal import freqz
 
 from leveler.analysis.evidence import Evidence
 from leveler.analysis.leftover import Leftover, leftover
-from leveler.analysis.nuisance import Nuisance, Projection, with_states
+from leveler.analysis.nuisance import Nuisance, Projection, predictive_cost, with_states
 from leveler.analysis.predict import (
     Measured,
     Predictor,
@@ -368,9 +368,10 @@ def diagnose(meas: Measured, max_effects: int = 4,
         w_train = make_blocks(meas, pred, train)
         w_test = make_blocks(meas, pred, test)
         n_train, n_test = nuisance.on(w_train), nuisance.on(w_test)
-        cost0_train = n_train.cost(w_train.whiten(meas.y_m - pred.base.y_m))
+        white0_train = w_train.whiten(meas.y_m - pred.base.y_m)
+        cost0_train = n_train.cost(white0_train)
         white0_test = w_test.whiten(meas.y_m - pred.base.y_m)
-        cost0_test = n_test.cost(white0_test)
+        cost0_test = predictive_cost(n_train, n_test, white0_train, white0_test)
         ev = Evidence(meas, pred, w_train, nuisance)
         ev_test = Evidence(meas, pred, w_test, nuisance)
         passed: list[tuple[Fit, Candidate]] = []
@@ -393,8 +394,11 @@ def diagnose(meas: Measured, max_effects: int = 4,
                                            note=f"rejected: {why}", round=len(found)))
                     continue
                 n_cand = with_states(n_test, w_test, pred, f.effect)
-                white_test = w_test.whiten(meas.y_m - pred.with_candidate(f.effect))
-                cost_test = n_cand.cost(white_test)
+                n_cand_train = with_states(n_train, w_train, pred, f.effect)
+                r_cand = meas.y_m - pred.with_candidate(f.effect)
+                white_train = w_train.whiten(r_cand)
+                white_test = w_test.whiten(r_cand)
+                cost_test = predictive_cost(n_cand_train, n_cand, white_train, white_test)
                 k = len(f.effect.free)
                 own = f.effect.held_out_deviance(ev_test)
                 only_own = own is not None and f.effect.own_score_only
@@ -427,8 +431,10 @@ def diagnose(meas: Measured, max_effects: int = 4,
                 # hold it (a 32 ms delay moves it by 0.4 of the noise at the modulation's
                 # lines and the resonance; a null log's 64 mV play, by 0.06).
                 fitted = w_test.fitted()
-                in_fitted = max(deviance(n_test.restricted(fitted).cost(white0_test[fitted]),
-                                         n_cand.restricted(fitted).cost(white_test[fitted])),
+                in_fitted = max(deviance(predictive_cost(n_train, n_test, white0_train,
+                                                         white0_test, fitted),
+                                         predictive_cost(n_cand_train, n_cand, white_train,
+                                                         white_test, fitted)),
                                 own_score) > cand.penalty
                 share = _MIN_NOISE_SHARE_FITTED if in_fitted else _MIN_NOISE_SHARE
                 size = float(np.std(pred.physical_change(f.effect)[w_test.index()]))
