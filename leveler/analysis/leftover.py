@@ -11,7 +11,9 @@ nearest wrong family or nothing.
 Where it lives: the band, and the coherence of the residual with the piezo command and the
 logged temperature at those frequencies. In a closed loop any tilt the model misses is
 coherent with the command (the loop answers it), so a high command coherence alone does
-not point at the actuator; a high temperature coherence points at a thermal path.
+not point at the actuator; a high temperature coherence points at a thermal path. Lines
+that crowd into one band are fitted as a bump (`leveler.analysis.bump`): a mode rung by
+its own noise, whose frequency, Q and rms say which part of the stand it may be.
 """
 
 from __future__ import annotations
@@ -22,9 +24,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import coherence
 
+from leveler.analysis.bump import Q_BOUNDS, Bump, Spectra
 from leveler.analysis.nuisance import Projection
 from leveler.analysis.predict import Measured
-from leveler.analysis.whittle import Whitener
+from leveler.analysis.whittle import Blocks, Whitener
 
 #: the chance that a log whose model is right is said to hold unexplained structure
 FALSE_ALARM = 0.01
@@ -41,6 +44,7 @@ class Leftover:
     band: str
     coherence_command: float | None
     coherence_temperature: float | None
+    bump: Bump | None = None  # the lines' power as a mode rung by noise, if it is one
 
     def describe(self) -> str:
         lines = ", ".join(f"{_hz(f)} (z {z:.0f})" for f, z in
@@ -50,6 +54,10 @@ class Leftover:
             where.append(f"coherence with the piezo command {self.coherence_command:.2f}")
         if self.coherence_temperature is not None:
             where.append(f"with the temperature {self.coherence_temperature:.2f}")
+        if self.bump is not None:
+            b = self.bump
+            where.append(f"their power is a bump at {_hz(b.f0_hz)}, Q {b.q:.3g}, "
+                         f"{b.rms_m * 1e9:.3g} nm rms: a mode rung by its own noise?")
         return (f"unexplained structure in {self.band}: {lines} stand above the noise "
                 f"(threshold z {self.threshold:.1f}, {FALSE_ALARM * 100:g} % false alarms); "
                 + "; ".join(where))
@@ -57,7 +65,10 @@ class Leftover:
     def as_dict(self) -> dict[str, object]:
         return {"f_hz": self.f_hz, "z": self.z, "threshold": self.threshold,
                 "band": self.band, "coherence_command": self.coherence_command,
-                "coherence_temperature": self.coherence_temperature}
+                "coherence_temperature": self.coherence_temperature,
+                "bump": None if self.bump is None else {
+                    "f0_hz": self.bump.f0_hz, "q": self.bump.q, "rms_m": self.bump.rms_m,
+                    "deviance": self.bump.deviance}}
 
 
 def _hz(f: float) -> str:
@@ -106,4 +117,17 @@ def leftover(meas: Measured, residual: np.ndarray, train: tuple[Whitener, Projec
         return float(np.max(np.interp(f[top], fc, c)))
 
     return Leftover([float(v) for v in f[top]], [float(v) for v in z[top]], threshold, band,
-                    coh(meas.u_v), coh(meas.sig.temperature_k))
+                    coh(meas.u_v), coh(meas.sig.temperature_k),
+                    _bump(residual, train[0], w, f0, len(z)))
+
+
+def _bump(residual: np.ndarray, train: Whitener, test: Whitener, f0_hz: float,
+          bins: int) -> Bump | None:
+    """The lines' power as a band-pass bump, fitted on the held-out block and seen in the
+    training one beyond a penalty for its three parameters; None if it is a line (its Q
+    at the search's bound) or the training block does not show it."""
+    bump = Spectra(Blocks([test]), residual).fit(f0_hz, 0.8 * f0_hz, 1.25 * f0_hz)
+    if bump.q >= 0.99 * Q_BOUNDS[1]:
+        return None
+    seen = Spectra(Blocks([train]), residual).deviance(bump.f0_hz, bump.q, bump.rms_m)
+    return bump if seen > 3 * math.log(2 * bins) else None

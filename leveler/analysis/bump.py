@@ -1,0 +1,101 @@
+"""A mode rung by its own noise: a bump in the residual's spectrum, not a line in it.
+
+A table top or a mount shaken by the floor, by air or by the piezo's own noise rings at
+its resonance whatever the command does, and replay cannot predict a single sample of
+it: the effect lives only in the residual's power. So it is scored the way the noise
+is, by Whittle's likelihood: the block's fitted noise spectrum S0 against S0 plus a
+band-pass bump of the mode's noise,
+
+    S1(f) = S0(f) + rms^2 |H(f)|^2 / (pi f0 / (2 Q)),  |H|^2 = (x/Q)^2 / ((1 - x^2)^2 + (x/Q)^2),
+
+x = f / f0 (|H| = 1 at f0; pi f0 / (2 Q) is its noise bandwidth, so the bump holds rms^2).
+The bump's frequency and Q are fitted (a grid, then a simplex), its level solved for
+each, against the noise spectrum S0 each block already holds. That spectrum was fitted
+to a residual holding the bump, whose shoulders lift it: the bump's frequency and rms
+come out right, its Q high (38 for 25, 18 for 8 in tests/test_bump.py); fitting the two
+together is the next step.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import minimize, minimize_scalar
+
+from leveler.analysis.whittle import ENBW_BINS, Blocks
+
+#: Q values the search starts from (a mount's mode: a few to a few hundred)
+Q_GRID = (3.0, 6.0, 12.0, 25.0, 50.0, 100.0)
+Q_BOUNDS = (2.0, 1e3)
+
+
+def band_pass_power(f_hz: np.ndarray, f0_hz: float, q: float) -> np.ndarray:
+    """|H(f)|^2 of a unit-peak second-order band-pass."""
+    x = f_hz / f0_hz
+    r = (x / q) ** 2
+    return r / ((1 - x * x) ** 2 + r)
+
+
+def mode_psd(f_hz: np.ndarray, f0_hz: float, q: float, rms_m: float) -> np.ndarray:
+    """One-sided PSD [m^2/Hz] of a mode's noise of this rms at the sensor."""
+    return rms_m**2 * band_pass_power(f_hz, f0_hz, q) / (math.pi * f0_hz / (2 * q))
+
+
+@dataclass(frozen=True)
+class Bump:
+    f0_hz: float
+    q: float
+    rms_m: float
+    deviance: float  # 2 ln of the likelihood ratio against no bump, on the blocks it was fit
+
+
+class Spectra:
+    """The periodograms and noise spectra of a set of blocks, flattened to one grid, with
+    the bins the noise was fitted on (the extrapolated lowest ones say nothing here)."""
+
+    def __init__(self, w: Blocks, residual: np.ndarray) -> None:
+        keep = np.concatenate([~p.extrapolated() for p in w.parts])
+        self.f_hz = w.f_hz[keep]
+        self.p = np.concatenate([p.periodogram(residual) for p in w.parts])[keep]
+        self.s0 = np.concatenate([p.psd for p in w.parts])[keep]
+
+    def deviance(self, f0_hz: float, q: float, rms_m: float) -> float:
+        """2 ln L(S0 + bump) - 2 ln L(S0), corrected for the window's correlated bins."""
+        near = np.abs(np.log(self.f_hz.clip(1e-12) / f0_hz)) < 8.0 / q + 0.5
+        s0, p = self.s0[near], self.p[near]
+        s1 = s0 + mode_psd(self.f_hz[near], f0_hz, q, rms_m)
+        return 2.0 * float(np.sum(np.log(s0 / s1) + p / s0 - p / s1)) / ENBW_BINS
+
+    def best_rms(self, f0_hz: float, q: float) -> tuple[float, float]:
+        """The level that fits best at this frequency and Q: (rms_m, deviance)."""
+        near = np.abs(self.f_hz - f0_hz) < f0_hz / q
+        if not np.any(near):
+            return 0.0, 0.0
+        # the bump's excess over the noise at its peak, in power, gives the scale
+        excess = max(float(np.mean(self.p[near] - self.s0[near])), 0.0)
+        scale = math.sqrt(excess * math.pi * f0_hz / (2 * q)) or math.sqrt(
+            float(np.mean(self.s0[near])) * f0_hz / q)
+        res = minimize_scalar(lambda a: -self.deviance(f0_hz, q, scale * math.exp(a)),
+                              bounds=(-8.0, 4.0), method="bounded", options={"xatol": 1e-3})
+        dev = -float(res.fun)
+        return (scale * math.exp(float(res.x)), dev) if dev > 0 else (0.0, 0.0)
+
+    def fit(self, f_guess_hz: float, f_lo_hz: float, f_hi_hz: float) -> Bump:
+        """The best bump near `f_guess_hz`, kept within [f_lo, f_hi]."""
+        best = max(((q, *self.best_rms(f_guess_hz, q)) for q in Q_GRID), key=lambda r: r[2])
+        x0 = np.array([math.log(f_guess_hz), math.log(best[0])])
+        lo = np.array([math.log(f_lo_hz), math.log(Q_BOUNDS[0])])
+        hi = np.array([math.log(f_hi_hz), math.log(Q_BOUNDS[1])])
+
+        def cost(x: np.ndarray) -> float:
+            x = np.clip(x, lo, hi)
+            return -self.best_rms(math.exp(x[0]), math.exp(x[1]))[1]
+
+        res = minimize(cost, x0, method="Nelder-Mead",
+                       options={"xatol": 1e-4, "fatol": 1e-3, "maxfev": 200})
+        x = np.clip(res.x, lo, hi)
+        f0, q = math.exp(x[0]), math.exp(x[1])
+        rms, dev = self.best_rms(f0, q)
+        return Bump(f0, q, rms, dev)
