@@ -264,3 +264,25 @@ def test_a_slewing_piezo_is_felt_by_its_mean_over_the_step() -> None:
     plant.step()
     twin.pendulum.step(twin.tilt_rad() + 3.75 * twin._tilt_per_v)  # 5 V less the 1.25 V lag
     assert plant.pendulum.theta == pytest.approx(twin.pendulum.theta, rel=1e-12)
+
+
+def test_a_mode_rung_by_its_own_noise_adds_band_noise_of_its_rms() -> None:
+    """The same seed with and without the mode's noise: everything else is drawn alike, so
+    the difference of the analog readings is the mode's noise alone: its rms as stated,
+    its power at its frequency."""
+    quiet = {"sensor": {"adc_bits": 32}}
+    mode = {"frequency_hz": 2.0, "q": 20.0, "gain": 0.0, "noise_rms_m": 3e-9}
+    plain = Plant(build(PlantParams, quiet), 0.1, seed=3)
+    rung = Plant(build(PlantParams, quiet | {"effects": {"extra_resonance": mode}}), 0.1, seed=3)
+    diff = []
+    for _ in range(60_000):
+        diff.append(rung.measure()[1] - plain.measure()[1])
+        plain.step()
+        rung.step()
+    x = np.array(diff[1000:])
+    assert np.std(x) == pytest.approx(3e-9, rel=0.1)
+    p = np.abs(np.fft.rfft(x * np.hanning(len(x)))) ** 2
+    f = np.fft.rfftfreq(len(x), 0.1)
+    assert f[np.argmax(p)] == pytest.approx(2.0, rel=0.05)
+    band = np.abs(f - 2.0) < 2.0 / 20.0
+    assert np.sum(p[band]) > 0.5 * np.sum(p)  # most of its power within its half-power band

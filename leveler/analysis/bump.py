@@ -68,6 +68,19 @@ class Spectra:
         s1 = s0 + mode_psd(self.f_hz[near], f0_hz, q, rms_m)
         return 2.0 * float(np.sum(np.log(s0 / s1) + p / s0 - p / s1)) / ENBW_BINS
 
+    def spread(self, bump: Bump) -> float:
+        """How much of the bump's excess power the typical bin of its half-power band
+        carries: about 1 for noise rung in the band, near 0 for a comb of lines (a
+        sawtooth's harmonics) that a broad bump would also raise the likelihood for. The
+        median of an exponential periodogram bin is ln 2 of its mean."""
+        band = np.abs(self.f_hz - bump.f0_hz) < 0.5 * bump.f0_hz / bump.q
+        if np.count_nonzero(band) < 8:
+            return 0.0
+        s0 = self.s0[band]
+        excess = float(np.mean(mode_psd(self.f_hz[band], bump.f0_hz, bump.q, bump.rms_m) / s0))
+        typical = float(np.median(self.p[band] / s0)) / math.log(2) - 1.0
+        return typical / excess if excess > 0 else 0.0
+
     def best_rms(self, f0_hz: float, q: float) -> tuple[float, float]:
         """The level that fits best at this frequency and Q: (rms_m, deviance)."""
         near = np.abs(self.f_hz - f0_hz) < f0_hz / q
@@ -82,12 +95,13 @@ class Spectra:
         dev = -float(res.fun)
         return (scale * math.exp(float(res.x)), dev) if dev > 0 else (0.0, 0.0)
 
-    def fit(self, f_guess_hz: float, f_lo_hz: float, f_hi_hz: float) -> Bump:
-        """The best bump near `f_guess_hz`, kept within [f_lo, f_hi]."""
+    def fit(self, f_guess_hz: float, f_lo_hz: float, f_hi_hz: float,
+            q_bounds: tuple[float, float] = Q_BOUNDS) -> Bump:
+        """The best bump near `f_guess_hz`, kept within [f_lo, f_hi] and `q_bounds`."""
         best = max(((q, *self.best_rms(f_guess_hz, q)) for q in Q_GRID), key=lambda r: r[2])
         x0 = np.array([math.log(f_guess_hz), math.log(best[0])])
-        lo = np.array([math.log(f_lo_hz), math.log(Q_BOUNDS[0])])
-        hi = np.array([math.log(f_hi_hz), math.log(Q_BOUNDS[1])])
+        lo = np.array([math.log(f_lo_hz), math.log(q_bounds[0])])
+        hi = np.array([math.log(f_hi_hz), math.log(q_bounds[1])])
 
         def cost(x: np.ndarray) -> float:
             x = np.clip(x, lo, hi)
@@ -99,3 +113,26 @@ class Spectra:
         f0, q = math.exp(x[0]), math.exp(x[1])
         rms, dev = self.best_rms(f0, q)
         return Bump(f0, q, rms, dev)
+
+    def sigma(self, bump: Bump) -> dict[str, float]:
+        """1-sigma of the bump's frequency, Q and rms from the curvature of the deviance
+        (twice the log-likelihood) at the fit: the inverse of half its Hessian."""
+        x = np.array([bump.f0_hz, bump.q, bump.rms_m])
+        h = np.array([0.05 * bump.f0_hz / bump.q, 0.05 * bump.q, 0.05 * bump.rms_m])
+
+        def dev(v: np.ndarray) -> float:
+            return self.deviance(float(v[0]), float(v[1]), float(v[2]))
+
+        hess = np.zeros((3, 3))
+        for i in range(3):
+            for j in range(i, 3):
+                ei, ej = np.eye(3)[i] * h[i], np.eye(3)[j] * h[j]
+                hess[i, j] = hess[j, i] = (dev(x + ei + ej) - dev(x + ei - ej) - dev(x - ei + ej)
+                                           + dev(x - ei - ej)) / (4 * h[i] * h[j])
+        try:
+            var = np.diag(np.linalg.inv(-hess / 2))
+        except np.linalg.LinAlgError:
+            var = np.full(3, np.inf)
+        keys = ("frequency_hz", "q", "noise_rms_m")
+        return {k: float(math.sqrt(v)) if v > 0 else math.inf
+                for k, v in zip(keys, var, strict=True)}

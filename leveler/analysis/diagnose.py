@@ -38,6 +38,7 @@ import numpy as np
 from scipy.optimize import least_squares, minimize_scalar
 from scipy.signal import freqz
 
+from leveler.analysis.bump import Bump, Spectra, mode_psd
 from leveler.analysis.evidence import Evidence
 from leveler.analysis.leftover import Leftover, leftover
 from leveler.analysis.nuisance import Nuisance, Projection, predictive_cost, with_states
@@ -51,7 +52,7 @@ from leveler.analysis.predict import (
 from leveler.analysis.recalibrate import Recalibration, apply, recalibrate
 from leveler.analysis.told import red_ceiling
 from leveler.analysis.whittle import ENBW_BINS, Blocks, Whitener, deviance, hann
-from leveler.sim.effects import EFFECTS, Effect, EffectsParams
+from leveler.sim.effects import EFFECTS, Effect, EffectsParams, ExtraResonance
 from leveler.sim.params import PlantParams
 
 #: An accepted effect moves the reading by this share of the sensor's white noise, rms
@@ -59,6 +60,9 @@ from leveler.sim.params import PlantParams
 #: where the fitted bins alone hold it.
 _MIN_NOISE_SHARE = 0.5
 _MIN_NOISE_SHARE_FITTED = 0.2
+#: A mode rung by noise raises the typical bin of its band by at least this share of its
+#: power; a comb of lines raises a few (leveler.analysis.bump's `spread`).
+MIN_SPREAD = 0.5
 #: Two families whose held-out evidence (2 ln of the likelihood ratio) is closer than this
 #: are not told apart: 10 is "very strong" on Kass & Raftery's scale; for strong effects 5 %
 #: of the better one's, as the forms and the fitted noise spectrum are approximations.
@@ -145,10 +149,21 @@ def _pendulum_shape(pred: Predictor, meas: Measured, f_hz: np.ndarray) -> np.nda
     return np.abs(h / dc) ** 2
 
 
+def _known_psd(pred: Predictor) -> Callable[[np.ndarray], np.ndarray] | None:
+    """The noise of the modes found rung by their own noise: the model holds it."""
+    modes = [fx for fx in pred.effects.of("response")
+             if isinstance(fx, ExtraResonance) and fx.noise_rms_m > 0]
+    if not modes:
+        return None
+    return lambda f: sum((mode_psd(f, m.frequency_hz, m.q, m.noise_rms_m) for m in modes),
+                         np.zeros_like(f))
+
+
 def make_whitener(meas: Measured, pred: Predictor, span: slice) -> Whitener:
     w = Whitener(span, len(meas.y_m), meas.dt_s,
                  functools.partial(_pendulum_shape, pred, meas),
-                 red_ceiling(pred.params, meas.sig.temperature_k is not None))
+                 red_ceiling(pred.params, meas.sig.temperature_k is not None),
+                 _known_psd(pred))
     w.fit_noise(meas.y_m - pred.base.y_m)
     return w
 
@@ -303,7 +318,7 @@ def actuator_excited(meas: Measured, pred: Predictor, span: slice) -> bool:
 
 def _stable(a: Effect, b: Effect) -> bool:
     """Same effect on both parts of the log: same sign, size within a factor of 2."""
-    x, y = float(getattr(a, a.magnitude)), float(getattr(b, b.magnitude))
+    x, y = a.size(), b.size()
     return x * y > 0 and 0.5 <= abs(y / x) <= 2.0
 
 
@@ -388,6 +403,11 @@ def diagnose(meas: Measured, max_effects: int = 4,
                 fits.append(f)
                 fits += [fit_effect(v, pred, w_train, meas, n_train)
                          for v in f.effect.variants()]
+            if cls is ExtraResonance:
+                modes, ok = _rung_by_noise(ev, ev_test, len(w_test.f_hz), len(found), noise,
+                                           (thresholds or {}).get(cls.name, 0.0))
+                tried += modes
+                passed += ok
             for f in fits:
                 if why := f.effect.degenerate(ev):
                     tried.append(Candidate(cls.name, f.effect.values(), 0.0, 0.0, 0.0,
@@ -465,7 +485,7 @@ def diagnose(meas: Measured, max_effects: int = 4,
         final = f
         for _ in range(2):
             w_whole.fit_noise(meas.y_m - pred.with_candidate(final.effect))
-            refit = fit_effect(final.effect, pred, w_whole, meas, nuisance.on(w_whole))
+            refit = _refit(final, pred, w_whole, meas, nuisance.on(w_whole))
             if refit.effect.degenerate(ev):  # what held out was the fit before this one
                 break
             final = refit
@@ -478,8 +498,11 @@ def diagnose(meas: Measured, max_effects: int = 4,
         # and the effect's fit on that biased baseline is refined with it.
         plant = dataclasses.replace(meas.config.plant,
                                     effects=pred.effects.with_effect(final.effect))
-        refined = _recalibrated(meas, plant, whole, act_excited, final.effect)
         around = _recalibrated(meas, plant, whole, act_excited)  # the knobs around the fit
+        noisy = isinstance(final.effect, ExtraResonance) and final.effect.rung_by_noise
+        # a mode rung by noise alone changes no prediction: nothing to refine with the knobs
+        refined = around if noisy else _recalibrated(meas, plant, whole, act_excited,
+                                                     final.effect)
         # The refinement may wander where no held-out fit went: a day's null log had a
         # 3.4 V play become 37 V (a gain); a jittered sawtooth's sine moved from 183 to
         # 187 s at a quarter of its size, fitted on the bins its lines leave quiet: a gap
@@ -515,7 +538,7 @@ def normalised_gap(w: Blocks, before: np.ndarray, after: np.ndarray,
     and the final one: 1 is as good as the noise allows, and the number says how far a
     model is from it in that band, which nm alone do not."""
     out: dict[str, dict[str, float] | None] = {}
-    zb, za = w.zscores(before), w.zscores(after)
+    zb, za = w.zscores(before, known=False), w.zscores(after)
     low = np.concatenate([p.extrapolated() for p in w.parts])
     for name, (lo, hi) in bands_hz.items():
         sel = (w.f_hz >= lo) & (w.f_hz < hi) & ~low
@@ -550,8 +573,64 @@ def _cost(meas: Measured, model: tuple[Predictor, Recalibration | None, Nuisance
     return nuisance.on(w).cost(w.whiten(meas.y_m - pred.base.y_m))
 
 
-def _refit(f: Fit, pred: Predictor, w: Whitener, meas: Measured, nuis: Projection) -> Fit:
+def _refit(f: Fit, pred: Predictor, w: Whitener | Blocks, meas: Measured,
+           nuis: Projection) -> Fit:
+    """`f`'s effect fitted again on `w`: a mode rung by its own noise on its spectrum."""
+    if isinstance(f.effect, ExtraResonance) and f.effect.rung_by_noise:
+        spectra = Spectra(w if isinstance(w, Blocks) else Blocks([w]),
+                          meas.y_m - pred.base.y_m)
+        fx, bump = _fit_bump(spectra, f.effect, meas.dt_s)
+        return Fit(fx, spectra.sigma(bump), math.nan)
     return fit_effect(f.effect, pred, w, meas, nuis)
+
+
+def _fit_bump(spectra: Spectra, start: ExtraResonance, dt_s: float
+              ) -> tuple[ExtraResonance, Bump]:
+    """A mode rung by its own noise, fitted to the bump in `spectra` near `start`."""
+    lo, hi = start.bounds("frequency_hz")
+    bump = spectra.fit(start.frequency_hz, lo, min(hi, 0.95 * 0.5 / dt_s), start.bounds("q"))
+    fx = start.replace(frequency_hz=bump.f0_hz, q=bump.q, gain=0.0, noise_rms_m=bump.rms_m)
+    return fx, bump  # type: ignore[return-value]
+
+
+def _rung_by_noise(ev: Evidence, ev_test: Evidence, bins_test: int, round_: int,
+                   noise_m: float, calibrated: float
+                   ) -> tuple[list[Candidate], list[tuple[Fit, Candidate]]]:
+    """Modes rung by their own noise, fitted as bumps of the training blocks' spectra
+    and scored on the held-out blocks' with all three numbers fixed (`leveler.analysis.
+    bump`): replay cannot predict a sample of them, so their evidence is in the power
+    alone. (tried, passed), judged like every candidate: found in training, a penalty
+    or the calibrated threshold held out, and a size of a fifth of the sensor noise."""
+    tried: list[Candidate] = []
+    passed: list[tuple[Fit, Candidate]] = []
+    train, test = ev.spectra(), ev_test.spectra()
+    penalty = 3 * math.log(2 * bins_test)
+    for f_hz in ExtraResonance.noise_guesses(ev):
+        fx, bump = _fit_bump(train, ExtraResonance(frequency_hz=f_hz, noise_rms_m=1e-12),
+                             ev.sig.dt_s)
+        why = fx.degenerate(ev)
+        if not why and (share := train.spread(bump)) < MIN_SPREAD:
+            why = (f"the typical bin of its band carries {share:.0%} of its power: lines "
+                   "(a comb of harmonics), not a mode rung by noise")
+        if why:
+            tried.append(Candidate(fx.name, fx.values(), 0.0, 0.0, 0.0,
+                                   note=f"rejected: {why}", round=round_))
+            continue
+        cand = Candidate(fx.name, fx.values(), bump.deviance,
+                         test.deviance(bump.f0_hz, bump.q, bump.rms_m), penalty,
+                         sigma=train.sigma(bump), round=round_,
+                         threshold=max(penalty, calibrated))
+        tried.append(cand)
+        if cand.deviance_train <= penalty:
+            cand.note = "not found in the training part"
+        elif bump.rms_m <= _MIN_NOISE_SHARE_FITTED * noise_m:
+            cand.note = (f"rings by only {bump.rms_m * 1e9:.2g} nm rms, "
+                         f"{bump.rms_m / noise_m:.2g} of the sensor noise")
+        else:
+            cand.size_ok = True
+            if cand.deviance_test > cand.threshold:
+                passed.append((Fit(fx, cand.sigma, math.nan), cand))
+    return tried, passed
 
 
 def _select(passed: list[tuple[Fit, Candidate]], held_out: Callable[[Fit], Fit]

@@ -14,6 +14,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.ndimage import median_filter
 
+from leveler.analysis.bump import Spectra
 from leveler.analysis.nuisance import Nuisance
 from leveler.analysis.predict import Measured, Predictor, excitation_v
 from leveler.analysis.recalibrate import PULL_LIMIT
@@ -28,6 +29,9 @@ LINE_SPREAD = np.array([1.0, 2.0, 3.0, 2.0, 1.0]) / 9.0
 LINE_LEVEL_BINS = 31
 #: the fewest cycles in a block that make a line
 LINE_MIN_CYCLES = 8
+#: a bump's mean z must stand this many standard errors above 1 (searched over some
+#: ten thousand overlapping bands of a 3 h log: well beyond chance)
+BUMP_SIGMA = 8.0
 #: bins either side of a line that `line_deviance` weighs, and how far beside it the
 #: line is tried, to see that the power is on it
 LINE_WINDOW = 4
@@ -53,6 +57,10 @@ class Evidence:
         periodic disturbance, and the lowest bins are where unmodeled drift lives."""
         return 8.0 / (self.spec.n * self.sig.dt_s)
 
+    def bin_hz(self) -> float:
+        """The frequency grid's step (of the longest block, where lines are read)."""
+        return 1.0 / (self.spec.n * self.sig.dt_s)
+
     def peaks(self, fmin_hz: float, fmax_hz: float, most: int = 3) -> list[float]:
         """Frequencies of the strongest lines in [fmin, fmax], harmonics of a stronger line
         left out (a sawtooth is one disturbance, not ten)."""
@@ -77,6 +85,30 @@ class Evidence:
                 break
         return sorted(set(found))
 
+    def bumps(self, fmin_hz: float, fmax_hz: float, most: int = 2) -> list[float]:
+        """Centres of bands where the residual's power stands above the noise spectrum on
+        average, though perhaps in no single bin (a mode rung by noise: a bump, not a
+        line): the mean z over 16 to 1,024 bins, BUMP_SIGMA standard errors above 1."""
+        f, z = self.spec.f_hz, self._z
+        inside = (f >= fmin_hz) & (f <= fmax_hz)
+        found: list[tuple[float, float]] = []
+        for m in (16, 64, 256, 1024):
+            if np.count_nonzero(inside) < 4 * m:
+                break
+            mean = np.convolve(z, np.ones(m) / m, mode="same")
+            score = np.where(inside, (mean - 1.0) * math.sqrt(m), 0.0)
+            for k in np.argsort(score)[::-1][:50]:
+                if score[k] > BUMP_SIGMA:
+                    found.append((float(score[k]), float(f[k])))
+        found.sort(reverse=True)
+        out: list[float] = []
+        for _, fk in found:
+            if all(abs(math.log(fk / g)) > 0.2 for g in out):
+                out.append(fk)
+            if len(out) >= most:
+                break
+        return out
+
     def _fundamental(self, k: int, threshold: float, fmin_hz: float) -> int:
         """The lowest significant subharmonic of bin k: a sawtooth's second or third
         harmonic can stand out more than its fundamental."""
@@ -98,6 +130,11 @@ class Evidence:
         lo, hi = max(k - 2, 1), min(k + 3, len(self._z))
         p = self._z[lo:hi]
         return float(np.sum(self.spec.f_hz[lo:hi] * p) / np.sum(p))
+
+    def spectra(self) -> Spectra:
+        """The blocks' periodograms of the residual with their noise spectra (for a mode
+        rung by its own noise)."""
+        return Spectra(self.w, self.residual)
 
     def contribution(self, fx: Effect) -> np.ndarray:
         return self.pred.with_candidate(fx) - self.pred.base.y_m

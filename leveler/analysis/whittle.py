@@ -45,13 +45,15 @@ class NoiseSpectrum:
         self.basis /= self.basis.mean(axis=1, keepdims=True)
         self.coef = np.zeros(len(self.basis))
 
-    def fit(self, p: np.ndarray, use: np.ndarray) -> np.ndarray:
+    def fit(self, p: np.ndarray, use: np.ndarray, known: np.ndarray | None = None
+            ) -> np.ndarray:
         """Robust Whittle fit: bins far above the last fit (lines, a comb of harmonics) are
         left out and the fit repeated, so the noise spectrum describes the noise rather
-        than the effect it should make stand out."""
+        than the effect it should make stand out. `known`: a part of the spectrum already
+        accounted for (a found mode's noise), added to the smooth terms, not fitted."""
         keep = use & ~self._far_above_octave_median(p)
         for _ in range(6):
-            s = self._fit(p, keep)
+            s = self._fit(p, keep, known)
             out = use & (p / s > _OUTLIER_Z)
             if np.array_equal(~out & use, keep):
                 break
@@ -74,16 +76,18 @@ class NoiseSpectrum:
             med[o] = np.median(sel) if len(sel) else 0.0
         return p > 20.0 * med[octave]
 
-    def _fit(self, p: np.ndarray, use: np.ndarray) -> np.ndarray:
+    def _fit(self, p: np.ndarray, use: np.ndarray, known: np.ndarray | None = None
+             ) -> np.ndarray:
         """Whittle fit of the coefficients to periodogram p on bins `use`; returns S."""
         b = self.basis[:, use]
         pu = p[use]
         scale = float(np.median(pu)) or 1.0
         pu = pu / scale
+        fixed = 0.0 if known is None else known[use] / scale
 
         def nll(alpha: np.ndarray) -> tuple[float, np.ndarray]:
             c = np.exp(alpha)
-            s = c @ b
+            s = c @ b + fixed
             ratio = pu / s
             grad = ((1.0 - ratio) / s) @ b.T * c
             return float(np.sum(ratio + np.log(s))), grad
@@ -96,7 +100,7 @@ class NoiseSpectrum:
                 best = res
         assert best is not None
         self.coef = np.exp(best.x) * scale
-        return self.coef @ self.basis
+        return self.coef @ self.basis + (0.0 if known is None else known)
 
 
 def fast_length(n: int) -> int:
@@ -120,12 +124,13 @@ class Whitener:
 
     def __init__(self, span: slice, n_total: int, dt_s: float,
                  pendulum_response: Callable[[np.ndarray], np.ndarray],
-                 red_ceiling: Callable[[int, float, np.ndarray], np.ndarray] | None = None
-                 ) -> None:
+                 red_ceiling: Callable[[int, float, np.ndarray], np.ndarray] | None = None,
+                 known_psd: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
         """`pendulum_response(f_hz)`: |H(f)/H(0)|^2 of the pendulum. `red_ceiling(n, dt_s,
         bins)`: the most red noise [m^2/Hz] the model's stated noise terms allow in those
-        bins of a block, if it states them (`leveler.analysis.told`). The span is cut to
-        `fast_length`."""
+        bins of a block, if it states them (`leveler.analysis.told`). `known_psd(f_hz)`:
+        noise the model already holds [m^2/Hz] (a found mode rung by its own noise), added
+        to the fitted terms. The span is cut to `fast_length`."""
         start, stop, _ = span.indices(n_total)
         self.n = fast_length(stop - start)
         self.span = slice(start, start + self.n)
@@ -136,6 +141,7 @@ class Whitener:
         self.spectrum = NoiseSpectrum(self.f_hz, pendulum_response(self.f_hz))
         self.ceiling = (None if red_ceiling is None else
                         red_ceiling(self.n, dt_s, np.flatnonzero(self.extrapolated())))
+        self.known = None if known_psd is None else known_psd(self.f_hz)
         self.weight = np.ones(len(self.f_hz))
 
     def transform(self, x: np.ndarray) -> np.ndarray:
@@ -150,13 +156,14 @@ class Whitener:
         """Fit the noise spectrum to this residual; bin 0 (the mean) carries nothing."""
         p = self.periodogram(residual)
         use = ~self.extrapolated()
-        s = self.spectrum.fit(p, use)
+        s = self.spectrum.fit(p, use, self.known)
         if self.ceiling is not None:
             # The lowest bins get the fit's extrapolation, and a steep red term fitted to
             # the leakage of a trend extrapolates to whiten the trend away: no more red
             # noise there than the stated terms allow.
             low = ~use
-            s[low] = np.minimum(s[low], self.spectrum.flat()[low] + self.ceiling)
+            top = self.spectrum.flat()[low] + self.ceiling
+            s[low] = np.minimum(s[low], top if self.known is None else top + self.known[low])
         self.psd = s
         self.weight = minimum_phase(1.0 / np.sqrt(s * self.norm), self.n)
         self.weight[0] = 0.0  # the mean: removed before the window, carries nothing
@@ -174,9 +181,12 @@ class Whitener:
         e = self.whiten(residual)
         return float(e @ e)
 
-    def zscores(self, residual: np.ndarray) -> np.ndarray:
-        """Periodogram over the fitted noise spectrum, per bin (about 1 where it fits)."""
-        return self.periodogram(residual) / self.psd
+    def zscores(self, residual: np.ndarray, known: bool = True) -> np.ndarray:
+        """Periodogram over the fitted noise spectrum, per bin (about 1 where it fits);
+        `known=False`: over its fitted terms alone, as a model without the found modes'
+        noise would see it."""
+        psd = self.psd if known or self.known is None else self.psd - self.known
+        return self.periodogram(residual) / psd
 
     def extrapolated(self) -> np.ndarray:
         """Bins whose noise level is the fit's extrapolation, not fitted to them."""
@@ -222,8 +232,8 @@ class Blocks:
         e = self.whiten(residual)
         return float(e @ e)
 
-    def zscores(self, residual: np.ndarray) -> np.ndarray:
-        return np.concatenate([p.zscores(residual) for p in self.parts])
+    def zscores(self, residual: np.ndarray, known: bool = True) -> np.ndarray:
+        return np.concatenate([p.zscores(residual, known) for p in self.parts])
 
     def below(self, f_max_hz: float) -> np.ndarray:
         return np.concatenate([p.below(f_max_hz) for p in self.parts])

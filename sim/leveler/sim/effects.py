@@ -51,7 +51,9 @@ class Evidence(Protocol):
     @property
     def pull_limit(self) -> float: ...
     def fmin_hz(self) -> float: ...
+    def bin_hz(self) -> float: ...
     def peaks(self, fmin_hz: float, fmax_hz: float, most: int = 3) -> list[float]: ...
+    def bumps(self, fmin_hz: float, fmax_hz: float, most: int = 2) -> list[float]: ...
     def best_linear(self, starts: Sequence[Effect], amp_key: str | None,
                     keep: int) -> list[Effect]: ...
     def best_phase(self, template: Effect, phase_key: str, period_s: float,
@@ -105,6 +107,10 @@ class Effect:
     def canonical(self) -> Effect:
         """The one form of equivalent parameter sets that reports use."""
         return self
+
+    def size(self) -> float:
+        """How big the effect is, signed: what two fits of it must agree on."""
+        return float(getattr(self, self.magnitude))
 
     def difference(self, other: Effect, key: str) -> float:
         """How far apart two fits of this effect are in one parameter."""
@@ -601,23 +607,42 @@ class ActuatorHysteresis(Effect):
 
 #: a mode within this share of the pendulum's resonance frequency is the pendulum's own
 NEAR_PENDULUM = 0.2
+#: a mode rung by noise spreads its power over at least this many bins of its spectrum
+MIN_BAND_BINS = 4
 
 
 @dataclass(frozen=True, slots=True)
 class ExtraResonance(Effect):
     """A mode the model lacks (table top, mount, the piezo stack) rung by the actuator:
-    a band-pass of the piezo tilt, `gain` times the pendulum's static response at its peak."""
+    a band-pass of the piezo tilt, `gain` times the pendulum's static response at its peak,
+    and by its own noise (the floor, air): the same band-pass driven by white noise, with
+    `noise_rms_m` rms at the sensor. Replay predicts the first; the second is a bump in
+    the residual's spectrum (`leveler.analysis.bump`), fitted alone ("rung by noise")."""
 
     name: ClassVar[str] = "extra_resonance"
     stage: ClassVar[Stage] = "response"
     title: ClassVar[str] = "extra resonance"
-    free: ClassVar[tuple[str, ...]] = ("frequency_hz", "q", "gain")
     magnitude: ClassVar[str] = "gain"
     needs_excitation: ClassVar[bool] = True
 
     frequency_hz: float = positive(1.0)
     q: float = positive(10.0)
     gain: float = 0.0
+    noise_rms_m: float = non_negative(0.0)
+
+    @property
+    def free(self) -> tuple[str, ...]:  # type: ignore[override]
+        if self.rung_by_noise:
+            return ("frequency_hz", "q", "noise_rms_m")
+        return ("frequency_hz", "q", "gain")
+
+    @property
+    def rung_by_noise(self) -> bool:
+        """Only its noise: nothing for replay to predict."""
+        return self.gain == 0 and self.noise_rms_m > 0
+
+    def size(self) -> float:
+        return self.noise_rms_m if self.rung_by_noise else self.gain
 
     def discrete(self, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
         """ZOH-discretized band-pass (unit gain at resonance) as lfilter coefficients."""
@@ -653,11 +678,19 @@ class ExtraResonance(Effect):
             return (f"at {self.frequency_hz:.3g} Hz, Q {self.q:.3g}, its band reaches within "
                     f"{NEAR_PENDULUM:.0%} of the pendulum's resonance ({f0:.3g} Hz): its "
                     "frequency or Q, not a mode")
+        width = self.frequency_hz / self.q
+        if self.rung_by_noise and width < MIN_BAND_BINS * ev.bin_hz():
+            return (f"its band, {width * 1e3:.3g} mHz, is under {MIN_BAND_BINS} bins: a line "
+                    "(something periodic), not a mode rung by noise")
         return Effect.degenerate(self, ev)
 
     def describe(self) -> str:
-        return (f"extra resonance at {self.frequency_hz:.4g} Hz, Q {self.q:.3g}, "
-                f"{abs(self.gain) * 100:.3g}% of the static response at its peak")
+        head = f"extra resonance at {self.frequency_hz:.4g} Hz, Q {self.q:.3g}"
+        parts = ([f"{abs(self.gain) * 100:.3g}% of the static response at its peak"]
+                 if self.gain else [])
+        if self.noise_rms_m:
+            parts.append(f"rung by its own noise, {self.noise_rms_m * 1e9:.3g} nm rms")
+        return ", ".join([head, *parts])
 
     def band_hz(self) -> tuple[float, float]:
         return (self.frequency_hz / 1.5, self.frequency_hz * 1.5)
@@ -669,6 +702,18 @@ class ExtraResonance(Effect):
         starts = [cls(frequency_hz=f, q=q) for f in ev.peaks(0.02, 0.9 * nyquist)
                   if abs(f / f0 - 1) > NEAR_PENDULUM for q in (5.0, 30.0)]
         return ev.best_linear(starts, "gain", keep=2)
+
+    @classmethod
+    def noise_guesses(cls, ev: Evidence) -> list[float]:
+        """Where a mode rung by its own noise may be: lines and bumps of the residual's
+        spectrum away from the pendulum's resonance, a fifth of an octave apart."""
+        nyquist = 0.5 / ev.sig.dt_s
+        f0 = ev.natural_frequency_hz()
+        out: list[float] = []
+        for f in ev.bumps(0.02, 0.9 * nyquist) + ev.peaks(0.02, 0.9 * nyquist):
+            if abs(f / f0 - 1) > NEAR_PENDULUM and all(abs(math.log(f / g)) > 0.2 for g in out):
+                out.append(f)
+        return out
 
 
 # -- sensor: true displacement -> reading -------------------------------------------------------

@@ -9,9 +9,9 @@ platform tilt at t = n dt. Driver, replay and discrepancy tools all use this one
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 
 import numpy as np
+from scipy.signal import lfilter
 
 from leveler.records import Truth
 from leveler.sim.disturbance import Block, Disturbances
@@ -66,8 +66,10 @@ class Plant:
         self._actuator_fx = [e.stepper(dt_s) for e in fx.of("actuator")]
         self._sensor_fx = [e.stepper(dt_s) for e in fx.of("sensor")]
         self._resonances = [_Resonance(e, dt_s, params.pendulum.sensor_arm_m
-                                       * params.pendulum.amplification)
-                            for e in fx.of("response") if isinstance(e, ExtraResonance)]
+                                       * params.pendulum.amplification,
+                                       np.random.default_rng([seed, 0x4E5, i]))
+                            for i, e in enumerate(fx.of("response"))
+                            if isinstance(e, ExtraResonance)]
         self._extra_m = 0.0
 
     def tilt_rad(self) -> float:
@@ -165,23 +167,30 @@ class Plant:
 
 class _Resonance:
     """An extra resonance stepped sample by sample: the same discrete filter replay uses
-    (direct form II transposed, from rest at the first input)."""
+    (direct form II transposed, from rest at the first input), and, with `noise_rms_m`,
+    the same filter driven by white noise of its own (`rng`) scaled to that rms."""
 
-    def __init__(self, fx: ExtraResonance, dt_s: float, static_m_per_rad: float) -> None:
+    _BLOCK = 4096  # noise drawn this many samples at a time
+
+    def __init__(self, fx: ExtraResonance, dt_s: float, static_m_per_rad: float,
+                 rng: np.random.Generator) -> None:
         b, a = fx.discrete(dt_s)
         self._b = (b / a[0]).tolist()
         self._a = (a / a[0]).tolist()
         self._z = [0.0] * (len(self._a) - 1)
+        self._zn = [0.0] * (len(self._a) - 1)
         self._k = fx.gain * static_m_per_rad
         self._x0: float | None = None
-        self._filter: Callable[[float], float] = self._step
         if abs(self._b[0]) > 1e-12:
             raise ValueError("extra resonance filter must be strictly proper")
+        self._rng = rng
+        self._noise_in = fx.noise_rms_m / math.sqrt(impulse_energy(b, a)) if fx.noise_rms_m else 0.0
+        self._draws: list[float] = []
 
-    def _step(self, x: float) -> float:
+    def _step(self, x: float, z: list[float]) -> float:
         """Consume this step's input; returns the output at the *next* sample (the ZOH
         filter has no direct term, so that output is already known)."""
-        b, a, z = self._b, self._a, self._z
+        b, a = self._b, self._a
         y = b[0] * x + z[0]
         for j in range(len(z) - 1):
             z[j] = b[j + 1] * x + z[j + 1] - a[j + 1] * y
@@ -191,4 +200,18 @@ class _Resonance:
     def step(self, phi_u: float) -> float:
         if self._x0 is None:
             self._x0 = phi_u
-        return self._k * self._filter(phi_u - self._x0)
+        out = self._k * self._step(phi_u - self._x0, self._z)
+        if self._noise_in:
+            if not self._draws:
+                self._draws = (self._noise_in * self._rng.standard_normal(self._BLOCK)).tolist()
+            out += self._step(self._draws.pop(), self._zn)
+        return out
+
+
+def impulse_energy(b: np.ndarray, a: np.ndarray) -> float:
+    """Sum of the squared impulse response of a stable filter: its output variance per
+    unit variance of white noise at its input."""
+    r = float(np.max(np.abs(np.roots(a))))  # the slowest pole sets how long it rings
+    n = int(min(1 << 22, max(4096, 40 / max(1 - r, 1e-9))))
+    h = lfilter(b, a, np.r_[1.0, np.zeros(n)])
+    return float(np.sum(h**2))
