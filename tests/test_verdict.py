@@ -13,7 +13,12 @@ from leveler.analysis.diagnose import AMBIGUITY, BANDS_HZ, Candidate, Fit, _sele
 from leveler.analysis.synthetic import make_measured
 from leveler.cli.main import main
 from leveler.settings import load_config
-from leveler.sim.effects import ActuatorDelay, PeriodicDisturbance, TemperatureCoupling
+from leveler.sim.effects import (
+    ActuatorDelay,
+    ExtraResonance,
+    PeriodicDisturbance,
+    TemperatureCoupling,
+)
 
 SAW = PeriodicDisturbance(shape="sawtooth", period_s=287.0, peak_to_peak_rad=2.4e-7,
                           phase_s=31.0)
@@ -64,6 +69,19 @@ def test_a_rival_of_the_same_family_or_failing_its_held_out_fit_is_no_ambiguity(
     # The best failing its own held-out fit hands over to the next one.
     assert [c.name for _, c, _ in _select([best, rival], lambda f: (
         _disagrees(f) if f is best[0] else f))] == ["actuator_delay"]
+
+
+def test_what_a_replay_predicts_wins_a_tie_with_a_mode_rung_by_noise() -> None:
+    """A mispredicted delay leaves a bump of power where it acts, and a mode rung by noise
+    explains power: a strong 44 ms delay tied with a 1.14 Hz one (held-out 1,686 and
+    1,681). The replay's prediction, sample by sample, is the more specific answer."""
+    mode = ExtraResonance(frequency_hz=1.14, q=7.4, noise_rms_m=7e-10)
+    tie = [_passed("extra_resonance", mode, 1000.0),
+           _passed("actuator_delay", DELAY, 1000.0 - AMBIGUITY / 2)]
+    assert [c.name for _, c, _ in _select(tie, _agrees)] == ["actuator_delay"]
+    # a mode well ahead of the prediction is still the mode
+    far = [_passed("extra_resonance", mode, 1e5), _passed("actuator_delay", DELAY, 9.0e4)]
+    assert [c.name for _, c, _ in _select(far, _agrees)] == ["extra_resonance"]
 
 
 @pytest.fixture(scope="module")
