@@ -11,7 +11,8 @@ a candidate is scored only on what no in-tolerance knob explains. Then, per roun
    (`leveler.analysis.evidence`) and is fitted on the training part by least squares on the
    whitened residual (`leveler.analysis.whittle`);
 3. each fit is scored: the gain in log-likelihood must beat a BIC penalty (k ln n) on the
-   training part, and on the held-out part the penalty or, where null logs of the model
+   training part, and on the held-out part (scored given the training part: the knobs
+   solved on both, `nuisance.predictive_cost`) the penalty or, where null logs of the model
    show it too low for the family's search, the threshold calibrated on them
    (`nullcal`), or the effect is not real; of those that pass, the best must also fit
    the held-out part on its own with a compatible size (same sign, within 2x); when the
