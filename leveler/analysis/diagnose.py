@@ -489,7 +489,7 @@ def diagnose(meas: Measured, max_effects: int = 4,
         # (a temperature coupling is red), which would blunt the fit where it matters.
         w_whole = make_whitener(meas, pred, whole)
         final = f
-        for _ in range(2):
+        for _ in range(1 if _noise_rung(f.effect) else 2):  # its residual does not change
             w_whole.fit_noise(meas.y_m - pred.with_candidate(final.effect))
             refit = _refit(final, pred, w_whole, meas, nuisance.on(w_whole))
             if refit.effect.degenerate(ev):  # what held out was the fit before this one
