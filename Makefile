@@ -20,10 +20,12 @@ run: $(STAMP)
 	$(BIN)/leveler run --config $(CONFIG)
 
 # On every core (pytest-xdist), a test file to a worker so its module fixtures are made once:
-# 6.3 min on 2 cores where one process took 9-10.
+# 6.3 min on 2 cores where one process took 9-10. One BLAS thread per worker: the workers
+# already fill the cores, and BLAS threads on top of them fight for the same ones.
 test: $(STAMP) device-deps
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest -q -m "not slow and not systemd" -n auto --dist loadfile
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 \
+	  $(BIN)/python -m pytest -q -m "not slow and not systemd" -n auto --dist loadfile
 
 test-slow: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow

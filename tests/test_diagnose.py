@@ -265,6 +265,11 @@ def test_imported_quiet_loop_without_temperature(tmp_path: Path,
                                                  capsys: pytest.CaptureFixture[str]) -> None:
     """The voltage mirrors the unmodeled thermal tilt: no actuator effect may be blamed."""
     assert _imported(tmp_path, None, capsys) == []
+
+
+@pytest.mark.slow  # 30 s; the periodic family stays in make test (test_hidden_effect_is_found_fast)
+def test_imported_loop_without_temperature_names_a_sawtooth(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     truth = PeriodicDisturbance(shape="sawtooth", period_s=333.0, peak_to_peak_rad=2e-7,
                                 phase_s=10.0)
     found = _imported(tmp_path, truth, capsys)

@@ -30,6 +30,7 @@ def _diagnose(tmp_path: Path, family: str | None, severity: str,
     return d, truth["params"]
 
 
+@pytest.mark.slow  # 60 s; make test-slow
 def test_a_delay_is_not_taken_for_a_mode_at_the_pendulum(tmp_path: Path) -> None:
     """A 44 ms delay shifts the phase at the pendulum's resonance; a mode of gain -0.97
     at 0.885 Hz (the pendulum's band) did the same and made it "ambiguous"."""
