@@ -197,9 +197,11 @@ def test_a_play_is_judged_where_its_evidence_lies() -> None:
     with it, or never): a fit whose evidence all lies there is a gain that differs between
     the parts of the log (a day's null log of the independent generator, evidence 1,348).
     On the loop's noisy command a narrow play turns on every reversal: a loop."""
-    for width_v in (0.1, 3.4):
-        assert "a gain, not hysteresis" in ActuatorHysteresis(
-            width_v=width_v, fraction=-0.012).degenerate(_SquareThenLoop([2544.0, 0.0]))  # type: ignore[arg-type]
+    assert "a gain, not hysteresis" in ActuatorHysteresis(
+        width_v=0.1, fraction=-0.012).degenerate(_SquareThenLoop([2544.0, 0.0]))  # type: ignore[arg-type]
+    # A 3.4 V play needs reversals of 6.8 V, which neither block has: it never turns.
+    assert "turns 0 times" in ActuatorHysteresis(
+        width_v=3.4, fraction=-0.012).degenerate(_SquareThenLoop([2544.0, 0.0]))  # type: ignore[arg-type]
     assert ActuatorHysteresis(width_v=0.1, fraction=0.1).degenerate(
         _SquareThenLoop([0.0, 300.0])) == ""  # type: ignore[arg-type]
 
@@ -212,10 +214,15 @@ def test_degenerate_fits_are_no_evidence() -> None:
     assert "not below the command's spread" in ActuatorHysteresis(
         width_v=16.5, fraction=0.3).degenerate(ev)  # type: ignore[arg-type]
     # A play that needs a reversal of 2 x 4.5 V never turns on an 8 V triangle: what it
-    # adds is a gain and an offset (97 %); at 2 V it turns halfway (46 %) and is a loop.
-    assert "a gain, not hysteresis" in ActuatorHysteresis(
+    # adds is a ramp and an offset; at 2 V it turns at every reversal and is a loop.
+    assert "turns 0 times" in ActuatorHysteresis(
         width_v=4.5, fraction=0.3).degenerate(ev)  # type: ignore[arg-type]
     assert ActuatorHysteresis(width_v=2.0, fraction=0.3).degenerate(ev) == ""  # type: ignore[arg-type]
+    # A loop's command that drifts 25 V through a day's half cycle with 0.2 V of noise:
+    # a 1 V play turns once, at the start, and shows no loop.
+    drift = _SquareThenLoop([0.0, 1.0])
+    drift.command_blocks_v = lambda: _SquareThenLoop.command_blocks_v(drift)[1:]  # type: ignore[method-assign]
+    assert "turns 1 times" in ActuatorHysteresis(width_v=1.0, fraction=0.05).degenerate(drift)  # type: ignore[arg-type]
     assert "fraction = 1 sits at its bound" in ActuatorHysteresis(
         width_v=0.5, fraction=1.0).degenerate(ev)  # type: ignore[arg-type]
     assert "sits at its bound" in SensorGainError(gain_error=-0.5).degenerate(ev)  # type: ignore[arg-type]

@@ -512,8 +512,18 @@ def play(u: np.ndarray, width_v: float) -> np.ndarray:
     return np.clip(u[0], lo, hi)
 
 
+def play_turns(u: np.ndarray, width_v: float) -> int:
+    """How often the play's output changes direction: each turn is a reversal of the
+    input by more than twice the width, one half of a hysteresis loop."""
+    step = np.diff(play(np.array(u, dtype=float), width_v))
+    sign = np.sign(step[step != 0])
+    return int(np.count_nonzero(sign[1:] != sign[:-1]))
+
+
 #: a hysteresis whose addition to the stroke is more than this share a gain is a gain
 GAIN_LIKE = 0.9
+#: a hysteresis shows its loop in at least this many turns of its play (two loops)
+MIN_TURNS = 4
 
 
 @dataclass(frozen=True, slots=True)
@@ -566,11 +576,18 @@ class ActuatorHysteresis(Effect):
         square modulation every play is a gain: a day's null log of the independent
         generator had a 3.4 V play named with evidence 1,348, all of it from the square's
         blocks, where it asked for a gain 1.2 % below the closed loop's (the piezo's steps
-        ring a pendulum whose response to fast steps the model has slightly wrong)."""
+        ring a pendulum whose response to fast steps the model has slightly wrong).
+        And it must turn at all: an independent generator's closed-loop null log, the
+        loop starting out of equilibrium, had a 2.25 V play that never turned in 3 h (a
+        ramp through its dead band, then a constant) named for that start's transient."""
         spread = ev.command_spread_v()
         if self.width_v >= spread:
             return (f"play width {self.width_v:.3g} V is not below the command's spread "
                     f"({spread:.3g} V): a gain or a lag, not hysteresis")
+        turns = sum(play_turns(u, self.width_v) for u in ev.command_blocks_v())
+        if turns < MIN_TURNS:
+            return (f"a play of {self.width_v:.3g} V turns {turns} times in the log (a loop "
+                    f"needs {MIN_TURNS}): a ramp and a step, not hysteresis")
         shares = []
         for u in ev.command_blocks_v():
             added = play(u, self.width_v) - u
