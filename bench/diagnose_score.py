@@ -45,6 +45,8 @@ if str(HERE) not in sys.path:
 from independent.effects import FAMILIES, SEVERITIES  # noqa: E402
 from independent.generator import generate  # noqa: E402
 
+from leveler.analysis.nullcal import one_blas_thread  # noqa: E402
+
 TUNING_SEEDS = (101, 102, 103)
 UNTOUCHED_SEEDS = tuple(range(9001, 9011))  # never look at these while tuning
 SHORT = {
@@ -439,7 +441,8 @@ def main(argv: list[str] | None = None) -> int:
     results: list[dict[str, Any]] = []
     start = time.monotonic()
     try:
-        with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+        with ProcessPoolExecutor(max_workers=max(1, args.jobs),
+                                 initializer=one_blas_thread) as pool:
             futures = {pool.submit(run_case, c, workdir, hours, not args.no_platform_inertia,
                                    args.keep is not None): c for c in cases}
             for fut in as_completed(futures):
