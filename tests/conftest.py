@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import atexit
 import os
 import shutil
 import signal
@@ -25,8 +26,9 @@ settings.register_profile("explore", derandomize=False)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "repeatable"))
 
 # A null calibration `leveler diagnose` cached on this machine must not decide a test: the
-# tests (and the CLIs they start) read and write a cache of their own.
+# tests (and the CLIs they start) read and write a cache of their own, gone at the end.
 os.environ["LEVELER_CACHE_DIR"] = tempfile.mkdtemp(prefix="leveler-test-cache-")
+atexit.register(shutil.rmtree, os.environ["LEVELER_CACHE_DIR"], ignore_errors=True)
 
 
 @dataclass
