@@ -523,9 +523,13 @@ def diagnose(meas: Measured, max_effects: int = 4,
     w_tr, w_te = make_blocks(meas, pred, train), make_blocks(meas, pred, test)
     rest = None
     if not ambiguous:  # lines are looked for on one frequency grid: the longest blocks
+        def mode_near(spectra: Spectra, f_hz: float) -> tuple[Bump, str]:
+            _, bump, why = _mode_near(Evidence(meas, pred, w_tr, nuisance), spectra, f_hz)
+            return bump, why
+
         rest = leftover(meas, meas.y_m - pred.base.y_m,
                         (w_tr.longest, nuisance.on(w_tr.longest)),
-                        (w_te.longest, nuisance.on(w_te.longest)), BANDS_HZ)
+                        (w_te.longest, nuisance.on(w_te.longest)), BANDS_HZ, mode_near)
     nominal = Predictor(meas.config.plant, meas)
     return Diagnosis(found, pred.effects, gap_before, gap(meas, pred, whole), tried,
                      (float(meas.t_s[skip]), float(meas.t_s[-1])),
@@ -600,6 +604,30 @@ def _fit_bump(spectra: Spectra, start: ExtraResonance, dt_s: float, joint: bool 
     return fx, bump  # type: ignore[return-value]
 
 
+def _not_a_mode(ev: Evidence, spectra: Spectra, fx: ExtraResonance, bump: Bump) -> str:
+    """Why a bump fitted to `spectra` is no mode rung by noise ("" if it is one): the
+    form's own rule (the pendulum's band, a band under a few bins: a line) or a comb of
+    lines that a broad bump also raises the likelihood for."""
+    if why := fx.degenerate(ev):
+        return why
+    if (share := spectra.spread(bump)) < MIN_SPREAD:
+        return (f"the typical bin of its band carries {share:.0%} of its power: lines "
+                "(a comb of harmonics), not a mode rung by noise")
+    return ""
+
+
+def _mode_near(ev: Evidence, spectra: Spectra, f_hz: float, joint: bool = True
+               ) -> tuple[ExtraResonance, Bump, str]:
+    """A mode rung by noise fitted to `spectra` near `f_hz`, and why it is none."""
+    start = ExtraResonance(frequency_hz=f_hz, noise_rms_m=1e-12)
+    lo, hi = start.bounds("frequency_hz")
+    if lo >= hi:
+        return start, Bump(f_hz, start.q, 0.0, 0.0), (
+            f"at {f_hz * 1e3:.3g} mHz it is in the drifts' band, below any mode's")
+    fx, bump = _fit_bump(spectra, start, ev.sig.dt_s, joint)
+    return fx, bump, _not_a_mode(ev, spectra, fx, bump)
+
+
 def _rung_by_noise(ev: Evidence, ev_test: Evidence, bins_test: int, round_: int,
                    noise_m: float, calibrated: float
                    ) -> tuple[list[Candidate], list[tuple[Fit, Candidate]]]:
@@ -613,15 +641,10 @@ def _rung_by_noise(ev: Evidence, ev_test: Evidence, bins_test: int, round_: int,
     train, test = ev.spectra(), ev_test.spectra()
     penalty = 3 * math.log(2 * bins_test)
     for f_hz in ExtraResonance.noise_guesses(ev):
-        fx, bump = _fit_bump(train, ExtraResonance(frequency_hz=f_hz, noise_rms_m=1e-12),
-                             ev.sig.dt_s, joint=False)
-        why = fx.degenerate(ev)
-        if not why and (share := train.spread(bump)) < MIN_SPREAD:
-            why = (f"the typical bin of its band carries {share:.0%} of its power: lines "
-                   "(a comb of harmonics), not a mode rung by noise")
+        fx, bump, why = _mode_near(ev, train, f_hz, joint=False)
         if not why and bump.deviance > penalty:  # worth the joint fit's seconds
             fx, bump = _fit_bump(train, fx, ev.sig.dt_s)
-            why = fx.degenerate(ev)
+            why = _not_a_mode(ev, train, fx, bump)
         if why:
             tried.append(Candidate(fx.name, fx.values(), 0.0, 0.0, 0.0,
                                    note=f"rejected: {why}", round=round_))

@@ -19,12 +19,13 @@ its own noise, whose frequency, Q and rms say which part of the stand it may be.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.signal import coherence
 
-from leveler.analysis.bump import Q_BOUNDS, Bump, Spectra
+from leveler.analysis.bump import Bump, Spectra
 from leveler.analysis.nuisance import Projection
 from leveler.analysis.predict import Measured
 from leveler.analysis.whittle import Blocks, Whitener
@@ -83,12 +84,18 @@ def _zscores(residual: np.ndarray, w: Whitener, nuis: Projection
     return w.f_hz[_FIRST_BIN:], (e[:nb] ** 2 + e[nb:] ** 2)[_FIRST_BIN:]
 
 
+#: a mode rung by noise fitted near a frequency on some spectra: the bump, and why it is
+#: no such mode ("" if it is one); diagnose's own rule (`leveler.analysis.diagnose`)
+ModeFit = Callable[[Spectra, float], tuple[Bump, str]]
+
+
 def leftover(meas: Measured, residual: np.ndarray, train: tuple[Whitener, Projection],
              test: tuple[Whitener, Projection],
-             bands_hz: dict[str, tuple[float, float]]) -> Leftover | None:
+             bands_hz: dict[str, tuple[float, float]], mode_near: ModeFit) -> Leftover | None:
     """Lines of `residual` (full length) beyond the look-elsewhere threshold in the
     held-out part (`test`: its whitener, fitted to this residual, and the knobs) that stand
-    beyond it in the training part as well; None if there are none.
+    beyond it in the training part as well; None if there are none. Their power is fitted
+    as a mode rung by noise with `mode_near`, the search's own fit and rule.
 
     The knobs are solved out first, as in every comparison diagnose makes (the cooler's
     level, above all: a cooler 8 % off in a log leaves its comb). A line must be seen in
@@ -118,16 +125,16 @@ def leftover(meas: Measured, residual: np.ndarray, train: tuple[Whitener, Projec
 
     return Leftover([float(v) for v in f[top]], [float(v) for v in z[top]], threshold, band,
                     coh(meas.u_v), coh(meas.sig.temperature_k),
-                    _bump(residual, train[0], w, f0, len(z)))
+                    _bump(residual, train[0], w, f0, len(z), mode_near))
 
 
 def _bump(residual: np.ndarray, train: Whitener, test: Whitener, f0_hz: float,
-          bins: int) -> Bump | None:
+          bins: int, mode_near: ModeFit) -> Bump | None:
     """The lines' power as a band-pass bump, fitted on the held-out block and seen in the
-    training one beyond a penalty for its three parameters; None if it is a line (its Q
-    at the search's bound) or the training block does not show it."""
-    bump = Spectra(Blocks([test]), residual).fit(f0_hz, 0.8 * f0_hz, 1.25 * f0_hz)
-    if bump.q >= 0.99 * Q_BOUNDS[1]:
+    training one beyond a penalty for its three parameters; None if it is no mode (a
+    line, a comb: `mode_near`'s rule) or the training block does not show it."""
+    bump, why = mode_near(Spectra(Blocks([test]), residual), f0_hz)
+    if why:
         return None
     seen = Spectra(Blocks([train]), residual).deviance(bump.f0_hz, bump.q, bump.rms_m)
     return bump if seen > 3 * math.log(2 * bins) else None
