@@ -45,7 +45,7 @@ if str(HERE) not in sys.path:
 from independent.effects import FAMILIES, SEVERITIES  # noqa: E402
 from independent.generator import generate  # noqa: E402
 
-from leveler.analysis.nullcal import one_blas_thread  # noqa: E402
+from leveler.analysis.workers import one_blas_thread  # noqa: E402
 
 TUNING_SEEDS = (101, 102, 103)
 UNTOUCHED_SEEDS = tuple(range(9001, 9011))  # never look at these while tuning
@@ -143,8 +143,8 @@ def run_case(case: dict[str, Any], workdir: str, hours: float, platform_inertia:
                      modulated=case["modulated"], nominal_config=REPO / "config/sim.toml",
                      platform_inertia=platform_inertia)
     gen_s = time.perf_counter() - t0
-    cmd = [*leveler_command(), "diagnose", str(log), "--json",
-           "--model-out", str(log.with_suffix(".fitted.toml"))]
+    cmd = [*leveler_command(), "diagnose", str(log), "--json", "--jobs", "1",
+           "--model-out", str(log.with_suffix(".fitted.toml"))]  # the cases fill the cores
     t1 = time.perf_counter()
     result: dict[str, Any] = {**case, "truth": truth, "generate_s": gen_s}
     try:

@@ -32,7 +32,9 @@ import itertools
 import math
 import time
 from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
+from multiprocessing import get_context
 from typing import Any
 
 import numpy as np
@@ -53,6 +55,7 @@ from leveler.analysis.predict import (
 from leveler.analysis.recalibrate import Recalibration, apply, recalibrate
 from leveler.analysis.told import red_ceiling
 from leveler.analysis.whittle import ENBW_BINS, Blocks, Whitener, deviance, hann
+from leveler.analysis.workers import one_blas_thread
 from leveler.sim.effects import EFFECTS, Effect, EffectsParams, ExtraResonance
 from leveler.sim.params import PlantParams
 
@@ -361,10 +364,11 @@ def _recalibrated(meas: Measured, plant: PlantParams, whole: slice, excited: boo
 
 
 def diagnose(meas: Measured, max_effects: int = 4,
-             thresholds: dict[str, float] | None = None) -> Diagnosis:
+             thresholds: dict[str, float] | None = None, jobs: int = 1) -> Diagnosis:
     """`thresholds`: per family, the held-out evidence a candidate must beat, calibrated
     on null data (`leveler.analysis.nullcal`) where that is above its BIC penalty; every
-    candidate must beat the penalty, on the training part and on the held-out part."""
+    candidate must beat the penalty, on the training part and on the held-out part.
+    `jobs`: processes the families of each round are fitted in."""
     start_wall = time.perf_counter()
     pred = Predictor(meas.config.plant, meas)
     n = len(meas.y_m)
@@ -390,89 +394,16 @@ def diagnose(meas: Measured, max_effects: int = 4,
         cost0_test = predictive_cost(n_train, n_test, white0_train, white0_test)
         ev = Evidence(meas, pred, w_train, nuisance)
         ev_test = Evidence(meas, pred, w_test, nuisance)
+        r = _Round(meas, pred, w_train, w_test, n_train, n_test, white0_train, white0_test,
+                   cost0_train, cost0_test, ev, ev_test, len(found), noise, thresholds)
+        families = [cls for cls in EFFECTS.values()
+                    if getattr(pred.effects, cls.name) is None
+                    and (temperature or not cls.needs_temperature)
+                    and (excited or not cls.needs_excitation)]
         passed: list[tuple[Fit, Candidate]] = []
-        for cls in EFFECTS.values():
-            if getattr(pred.effects, cls.name) is not None:
-                continue
-            if cls.needs_temperature and not temperature:
-                continue
-            if cls.needs_excitation and not excited:
-                continue
-            fits = []
-            for guess in cls.guesses(ev):
-                f = fit_effect(guess, pred, w_train, meas, n_train)
-                fits.append(f)
-                fits += [fit_effect(v, pred, w_train, meas, n_train)
-                         for v in f.effect.variants()]
-            if cls is ExtraResonance:
-                modes, ok = _rung_by_noise(ev, ev_test, len(w_test.f_hz), len(found), noise,
-                                           (thresholds or {}).get(cls.name, 0.0))
-                tried += modes
-                passed += ok
-            for f in fits:
-                if why := f.effect.degenerate(ev):
-                    tried.append(Candidate(cls.name, f.effect.values(), 0.0, 0.0, 0.0,
-                                           note=f"rejected: {why}", round=len(found)))
-                    continue
-                n_cand = with_states(n_test, w_test, pred, f.effect)
-                n_cand_train = with_states(n_train, w_train, pred, f.effect)
-                r_cand = meas.y_m - pred.with_candidate(f.effect)
-                white_train = w_train.whiten(r_cand)
-                white_test = w_test.whiten(r_cand)
-                cost_test = predictive_cost(n_cand_train, n_cand, white_train, white_test)
-                k = len(f.effect.free)
-                own = f.effect.held_out_deviance(ev_test)
-                only_own = own is not None and f.effect.own_score_only
-                own_score = -math.inf if own is None else own
-                coherent = deviance(cost0_test, cost_test)
-                penalty = k * math.log(2 * len(w_test.f_hz))
-                cand = Candidate(cls.name, f.effect.values(), deviance(cost0_train, f.cost),
-                                 own_score if only_own else max(coherent, own_score),
-                                 penalty, sigma=f.sigma, round=len(found),
-                                 threshold=max(penalty, (thresholds or {}).get(cls.name, 0.0)))
-                tried.append(cand)
-                if cand.deviance_train <= penalty:
-                    # Not found where it was fitted: what it gains on the held-out part is
-                    # chance (a null log's 0.3 % temperature coupling: 0.8 there, 22 held out).
-                    cand.note = "not found in the training part"
-                    continue
-                if cand.deviance_test <= 0:  # no evidence at any threshold
-                    continue
-                if only_own:  # the replay cannot weigh it: no size in bins to check
-                    cand.size_ok = True
-                    if cand.deviance_test > cand.threshold:
-                        passed.append((f, cand))
-                    continue
-                # Statistically real is not enough: the forms and the noise spectrum are
-                # approximations, and an effect must also move the reading by a share of
-                # the sensor's own noise (rms over the held-out block where it moves it
-                # most: an actuator effect acts where the modulation drives the piezo,
-                # and a long closed-loop block would dilute it; a medium 17 ms delay,
-                # 0.22 of the noise there and 0.197 over both, gave way to a 0.2 V play
-                # with a tenth of its held-out evidence). Half of it where
-                # the evidence needs the lowest bins of each block, whose noise level is
-                # extrapolated, not fitted (a 70 pm drift over a night is not a finding,
-                # however well a fit pins it down); a fifth where the fitted bins alone
-                # hold it (a 32 ms delay moves it by 0.4 of the noise at the modulation's
-                # lines and the resonance; a null log's 64 mV play, by 0.06).
-                fitted = w_test.fitted()
-                in_fitted = max(deviance(predictive_cost(n_train, n_test, white0_train,
-                                                         white0_test, fitted),
-                                         predictive_cost(n_cand_train, n_cand, white_train,
-                                                         white_test, fitted)),
-                                own_score) > cand.penalty
-                share = _MIN_NOISE_SHARE_FITTED if in_fitted else _MIN_NOISE_SHARE
-                change = pred.physical_change(f.effect)
-                size = max(float(np.std(change[span])) for span in w_test.spans)
-                if size > share * noise:
-                    cand.size_ok = True
-                    if cand.deviance_test > cand.threshold:
-                        passed.append((f, cand))
-                else:
-                    where = ("" if in_fitted else
-                             ", its evidence in the lowest bins, where the noise is a guess")
-                    cand.note = (f"changes the reading by only {size * 1e9:.2g} nm rms, "
-                                 f"{size / noise:.2g} of the sensor noise{where}")
+        for family_tried, family_passed in _each_family(families, r, jobs):
+            tried += family_tried
+            passed += family_passed
         stable = _select(passed, functools.partial(_refit, pred=pred, w=w_test, meas=meas,
                                                    nuis=n_test))
         if not stable:
@@ -602,6 +533,141 @@ def _fit_bump(spectra: Spectra, start: ExtraResonance, dt_s: float, joint: bool 
                        joint)
     fx = start.replace(frequency_hz=bump.f0_hz, q=bump.q, gain=0.0, noise_rms_m=bump.rms_m)
     return fx, bump  # type: ignore[return-value]
+
+
+@dataclass
+class _Round:
+    """What every family's candidates in one round are fitted on and scored against."""
+
+    meas: Measured
+    pred: Predictor
+    w_train: Blocks
+    w_test: Blocks
+    n_train: Projection
+    n_test: Projection
+    white0_train: np.ndarray
+    white0_test: np.ndarray
+    cost0_train: float
+    cost0_test: float
+    ev: Evidence
+    ev_test: Evidence
+    round: int
+    noise: float
+    thresholds: dict[str, float] | None
+
+
+#: the round the forked workers of `_each_family` read (fork shares it, no pickling: its
+#: whiteners hold closures)
+_ROUND: tuple[list[type[Effect]], _Round] | None = None
+
+
+def _family_at(i: int) -> tuple[list[Candidate], list[tuple[Fit, Candidate]]]:
+    assert _ROUND is not None
+    families, r = _ROUND
+    return _family(families[i], r)
+
+
+def _each_family(families: list[type[Effect]], r: _Round, jobs: int
+                 ) -> list[tuple[list[Candidate], list[tuple[Fit, Candidate]]]]:
+    """`_family` of each, in order; over `jobs` forked processes when there are several
+    (the families' fits are independent, and most of a round's time)."""
+    global _ROUND
+    if jobs <= 1 or len(families) < 2:
+        return [_family(cls, r) for cls in families]
+    _ROUND = (families, r)
+    try:
+        with ProcessPoolExecutor(min(jobs, len(families)), mp_context=get_context("fork"),
+                                 initializer=one_blas_thread) as pool:
+            return list(pool.map(_family_at, range(len(families))))
+    finally:
+        _ROUND = None
+
+
+def _family(cls: type[Effect], r: _Round) -> tuple[list[Candidate], list[tuple[Fit, Candidate]]]:
+    """One family's fits in this round, each scored: (every candidate tried, those that
+    passed the training, held-out, size and threshold tests)."""
+    meas, pred, ev, ev_test, noise = r.meas, r.pred, r.ev, r.ev_test, r.noise
+    w_train, w_test, n_train, n_test = r.w_train, r.w_test, r.n_train, r.n_test
+    white0_train, white0_test = r.white0_train, r.white0_test
+    cost0_train, cost0_test, thresholds = r.cost0_train, r.cost0_test, r.thresholds
+    tried: list[Candidate] = []
+    passed: list[tuple[Fit, Candidate]] = []
+    fits = []
+    for guess in cls.guesses(ev):
+        f = fit_effect(guess, pred, w_train, meas, n_train)
+        fits.append(f)
+        fits += [fit_effect(v, pred, w_train, meas, n_train)
+                 for v in f.effect.variants()]
+    if cls is ExtraResonance:
+        modes, ok = _rung_by_noise(ev, ev_test, len(w_test.f_hz), r.round, noise,
+                                   (thresholds or {}).get(cls.name, 0.0))
+        tried += modes
+        passed += ok
+    for f in fits:
+        if why := f.effect.degenerate(ev):
+            tried.append(Candidate(cls.name, f.effect.values(), 0.0, 0.0, 0.0,
+                                   note=f"rejected: {why}", round=r.round))
+            continue
+        n_cand = with_states(n_test, w_test, pred, f.effect)
+        n_cand_train = with_states(n_train, w_train, pred, f.effect)
+        r_cand = meas.y_m - pred.with_candidate(f.effect)
+        white_train = w_train.whiten(r_cand)
+        white_test = w_test.whiten(r_cand)
+        cost_test = predictive_cost(n_cand_train, n_cand, white_train, white_test)
+        k = len(f.effect.free)
+        own = f.effect.held_out_deviance(ev_test)
+        only_own = own is not None and f.effect.own_score_only
+        own_score = -math.inf if own is None else own
+        coherent = deviance(cost0_test, cost_test)
+        penalty = k * math.log(2 * len(w_test.f_hz))
+        cand = Candidate(cls.name, f.effect.values(), deviance(cost0_train, f.cost),
+                         own_score if only_own else max(coherent, own_score),
+                         penalty, sigma=f.sigma, round=r.round,
+                         threshold=max(penalty, (thresholds or {}).get(cls.name, 0.0)))
+        tried.append(cand)
+        if cand.deviance_train <= penalty:
+            # Not found where it was fitted: what it gains on the held-out part is
+            # chance (a null log's 0.3 % temperature coupling: 0.8 there, 22 held out).
+            cand.note = "not found in the training part"
+            continue
+        if cand.deviance_test <= 0:  # no evidence at any threshold
+            continue
+        if only_own:  # the replay cannot weigh it: no size in bins to check
+            cand.size_ok = True
+            if cand.deviance_test > cand.threshold:
+                passed.append((f, cand))
+            continue
+        # Statistically real is not enough: the forms and the noise spectrum are
+        # approximations, and an effect must also move the reading by a share of
+        # the sensor's own noise (rms over the held-out block where it moves it
+        # most: an actuator effect acts where the modulation drives the piezo,
+        # and a long closed-loop block would dilute it; a medium 17 ms delay,
+        # 0.22 of the noise there and 0.197 over both, gave way to a 0.2 V play
+        # with a tenth of its held-out evidence). Half of it where
+        # the evidence needs the lowest bins of each block, whose noise level is
+        # extrapolated, not fitted (a 70 pm drift over a night is not a finding,
+        # however well a fit pins it down); a fifth where the fitted bins alone
+        # hold it (a 32 ms delay moves it by 0.4 of the noise at the modulation's
+        # lines and the resonance; a null log's 64 mV play, by 0.06).
+        fitted = w_test.fitted()
+        in_fitted = max(deviance(predictive_cost(n_train, n_test, white0_train,
+                                                 white0_test, fitted),
+                                 predictive_cost(n_cand_train, n_cand, white_train,
+                                                 white_test, fitted)),
+                        own_score) > cand.penalty
+        share = _MIN_NOISE_SHARE_FITTED if in_fitted else _MIN_NOISE_SHARE
+        change = pred.physical_change(f.effect)
+        size = max(float(np.std(change[span])) for span in w_test.spans)
+        if size > share * noise:
+            cand.size_ok = True
+            if cand.deviance_test > cand.threshold:
+                passed.append((f, cand))
+        else:
+            where = ("" if in_fitted else
+                     ", its evidence in the lowest bins, where the noise is a guess")
+            cand.note = (f"changes the reading by only {size * 1e9:.2g} nm rms, "
+                         f"{size / noise:.2g} of the sensor noise{where}")
+    return tried, passed
 
 
 def _not_a_mode(ev: Evidence, spectra: Spectra, fx: ExtraResonance, bump: Bump) -> str:

@@ -41,10 +41,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from leveler.analysis.predict import Measured, excitation_v
 from leveler.analysis.recalibrate import PULL_LIMIT, knobs
+from leveler.analysis.workers import one_blas_thread
 from leveler.loop.pid import PID
 from leveler.sim.effects import Signals
 from leveler.sim.params import PlantParams
@@ -275,14 +275,6 @@ def calibrate(meas: Measured, runs: int, *, jobs: int = 1, alpha: float = ALPHA,
             for fut in as_completed([pool.submit(_null_run, meas, s) for s in seeds]):
                 add(fut.result())
     return from_statistics(stats, alpha, key, time.perf_counter() - start)
-
-
-def one_blas_thread() -> None:
-    """For a worker process among others that fill the cores, and what it starts: BLAS
-    threads of its own only fight over them (4 null runs on 2 cores: 31 s with them, 16 s
-    without)."""
-    os.environ.update(OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
-    threadpool_limits(1)
 
 
 def report_progress(done: int, total: int, elapsed_s: float) -> None:

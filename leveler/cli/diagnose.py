@@ -58,7 +58,8 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
                    "number. 0 (default): use a cached calibration if there is one, else a "
                    "BIC penalty per family")
     p.add_argument("--jobs", type=int, default=None,
-                   help="processes for the null runs (default: one per core)")
+                   help="processes for the null runs and for the effect families of "
+                   "each round of the search (default: one per core)")
     p.add_argument("--json", action="store_true",
                    help="print one JSON object: effects, gap_before, gap_after, model_out, "
                    "and every candidate tried with its scores")
@@ -355,7 +356,8 @@ def run(args: argparse.Namespace) -> int:
               file=sys.stderr)
     cal = null_calibration(meas, args.null_runs, args.jobs)
     d = diagnose(meas, max_effects=args.max_effects,
-                 thresholds=None if cal is None else cal.thresholds)
+                 thresholds=None if cal is None else cal.thresholds,
+                 jobs=max(args.jobs or os.cpu_count() or 1, 1))
     model_out = None
     if d.effects:
         out = Path(args.model_out) if args.model_out else default_model_path(args.log)
