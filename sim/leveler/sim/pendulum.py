@@ -21,6 +21,7 @@ the full non-linear one (RK4), which the equilibrium and design tools need.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -72,11 +73,18 @@ def discrete_matrices(p: PendulumParams, dt_s: float) -> tuple[np.ndarray, np.nd
 
 def _zoh(p: PendulumParams, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
     """Exact discretization of `linear_matrices` with phi held over dt."""
+    e = _zoh_exp(p, dt_s)
+    return e[:2, :2].copy(), e[:2, 2].copy()
+
+
+@functools.lru_cache(maxsize=256)
+def _zoh_exp(p: PendulumParams, dt_s: float) -> np.ndarray:
+    """expm of the held-input system, remembered: a replay's fit of an effect builds a
+    predictor per step with the pendulum unchanged, and scipy's expm of a 3x3 costs 5 ms."""
     a, b = linear_matrices(p)
     m = np.zeros((3, 3))
     m[:2, :2], m[:2, 2:] = a * dt_s, b * dt_s
-    e = expm(m)
-    return e[:2, :2], e[:2, 2]
+    return expm(m)
 
 
 class PendulumModel:
