@@ -68,3 +68,17 @@ def test_no_lines_no_evidence(quiet: Measured) -> None:
     assert right > 100
     for period_s in (173.0, 200.0, 290.0):
         assert SAW.replace(period_s=period_s).held_out_deviance(ev) < 0.3 * right
+
+
+def test_a_move_the_sensor_cannot_see_is_no_modulation(quiet: Measured) -> None:
+    """A closed loop's replayed controller differs from the log by rounding and the
+    slew limit (here 9e-5 V rms), with the lines of what the loop answered in it: a day
+    with a 287 s sawtooth had its periodic disturbance rejected as "the modulation's"
+    response. A line the sensor cannot see is none; one it can is."""
+    t = quiet.t_s - quiet.t_s[0]
+    square = np.sign(np.sin(2 * np.pi * t / 287.0))
+    for size_v, seen in ((1e-6, False), (1.0, True)):
+        ev, _, _ = _held_out(dataclasses.replace(quiet, u_v=quiet.u_v + size_v * square))
+        f = ev.modulation_hz()
+        assert (f is not None) == seen, (size_v, f)
+        assert f is None or f == pytest.approx(1 / 287.0, rel=0.01)

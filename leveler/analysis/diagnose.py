@@ -48,7 +48,7 @@ from leveler.analysis.nuisance import Nuisance, Projection, predictive_cost, wit
 from leveler.analysis.predict import (
     Measured,
     Predictor,
-    excitation_v,
+    actuator_excited,
     pendulum_filter,
     sensor_noise_m,
 )
@@ -307,17 +307,6 @@ def _sigma(fx: Effect, pred: Predictor, w: Whitener | Blocks, meas: Measured,
     except np.linalg.LinAlgError:
         sig = np.full(len(keys), math.inf)
     return {k: float(s) for k, s in zip(keys, sig, strict=True)}
-
-
-def actuator_excited(meas: Measured, pred: Predictor, span: slice) -> bool:
-    """Did anything but feedback move the actuator enough to be seen at the sensor?"""
-    exc = excitation_v(meas)
-    if exc is None:  # not a leveler log: the voltage may well be a modulation
-        return True
-    p = pred.params
-    kv = p.piezo.gain_m_per_v / p.platform.support_spacing_m
-    seen = pred.pend(kv * exc)[span]
-    return float(np.std(seen)) > 3 * sensor_noise_m(p, meas.dt_s)
 
 
 def _stable(a: Effect, b: Effect) -> bool:

@@ -16,7 +16,7 @@ from scipy.ndimage import median_filter
 
 from leveler.analysis.bump import Spectra
 from leveler.analysis.nuisance import Nuisance
-from leveler.analysis.predict import Measured, Predictor, excitation_v
+from leveler.analysis.predict import Measured, Predictor, actuator_excited, excitation_v
 from leveler.analysis.recalibrate import PULL_LIMIT
 from leveler.analysis.whittle import ENBW_BINS, EXTRAPOLATED_BINS, Blocks, hann
 from leveler.sim.effects import Effect
@@ -248,9 +248,12 @@ class Evidence:
 
     def modulation_hz(self) -> float | None:
         """The fundamental of what moved the actuator besides feedback (`excitation_v`):
-        its strongest line (`modulation_hz`); None without one."""
+        its strongest line (`modulation_hz`); None without one, or when it moved the
+        actuator too little to be seen at the sensor (`actuator_excited`)."""
         if not hasattr(self, "_modulation"):
-            self._modulation = modulation_hz(excitation_v(self.meas), self.sig.dt_s)
+            exc = excitation_v(self.meas)
+            moved = exc is None or actuator_excited(self.meas, self.pred, slice(None), exc)
+            self._modulation = modulation_hz(exc, self.sig.dt_s) if moved else None
         return self._modulation
 
     @property

@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from leveler.analysis.predict import Measured, excitation_v
+from leveler.analysis.predict import Measured, actuator_excited, excitation_v
 from leveler.analysis.recalibrate import PULL_LIMIT, knobs
 from leveler.analysis.workers import one_blas_thread
 from leveler.loop.pid import PID
@@ -201,7 +201,7 @@ def cache_key(meas: Measured, alpha: float = ALPHA) -> str:
     """What a calibration depends on: the model file, the sample interval, the duration
     (within DURATION_BIN), whether anything but feedback moved the actuator, whether the
     temperature was logged, the false-alarm rate and the detector's code."""
-    from leveler.analysis.diagnose import actuator_excited, warmup_samples
+    from leveler.analysis.diagnose import warmup_samples
     from leveler.analysis.predict import Predictor
 
     pred = Predictor(meas.config.plant, meas)

@@ -348,6 +348,20 @@ def _unexplained_by_feedback(meas: Measured) -> np.ndarray:
     return np.concatenate([[0.0, 0.0], np.cumsum(du - a @ coef)])
 
 
+def actuator_excited(meas: Measured, pred: Predictor, span: slice,
+                     exc: np.ndarray | None = None) -> bool:
+    """Did anything but feedback move the actuator enough to be seen at the sensor? In a
+    closed loop the controller's replay differs from the log by rounding (1e-10 V), and
+    a line of that, at a disturbance the loop answered, is no modulation."""
+    exc = excitation_v(meas) if exc is None else exc
+    if exc is None:  # not a leveler log: the voltage may well be a modulation
+        return True
+    p = pred.params
+    kv = p.piezo.gain_m_per_v / p.platform.support_spacing_m
+    seen = pred.pend(kv * exc)[span]
+    return float(np.std(seen)) > 3 * sensor_noise_m(p, meas.dt_s)
+
+
 def sensor_noise_m(params: PlantParams, dt_s: float) -> float:
     """The model's white sensor noise per sample, ADC rounding included: the floor a replay
     residual cannot go below, and the yardstick for "big enough to matter"."""
