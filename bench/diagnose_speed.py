@@ -8,6 +8,7 @@ diagnosed in at most 2 minutes on 2 cores, reading the log included (as the comm
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 from typing import Any
@@ -41,7 +42,7 @@ def measure(duration_s: float) -> dict[str, Any]:
         replay(meas)
         replay_s = time.perf_counter() - start
         start = time.perf_counter()
-        found = diagnose(meas)
+        found = diagnose(meas, jobs=os.cpu_count() or 1)  # as the command does
         diagnose_s = time.perf_counter() - start
     return {"samples": len(meas.y_m), "read_s": read_s, "replay_s": replay_s,
             "diagnose_s": diagnose_s, "hidden": truth.describe(),
