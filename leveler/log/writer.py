@@ -650,14 +650,15 @@ class LogWriter:
         """Notice a file that was deleted, or whose directory was removed or moved: writes
         to it succeed and `status` would say healthy while nothing reaches the log."""
         fd_st = os.fstat(self._file.fileno())
-        if fd_st.st_nlink == 0:
-            gone = "" if self._path.parent.is_dir() else " (its directory is gone)"
-            self._deleted = True
-            self._displaced = f"{self._path} was deleted while being written{gone}"
+        if self._noticed_deleted(fd_st):
             return
         try:
             path_st = os.stat(self._path)
         except (FileNotFoundError, NotADirectoryError):
+            # Unlinked between the two calls? Then its link count is 0 by now: deleted,
+            # not moved (a test's rm landed there about every other run).
+            if self._noticed_deleted(os.fstat(self._file.fileno())):
+                return
             path_st = None
         except OSError:  # e.g. the directory made unreadable: the file may still be there
             return
@@ -665,6 +666,14 @@ class LogWriter:
             self._displaced = (f"{self._path} is no longer at its path (its directory was "
                                "moved or the file renamed or replaced); what it holds is "
                                "wherever it went")
+
+    def _noticed_deleted(self, fd_st: os.stat_result) -> bool:
+        if fd_st.st_nlink != 0:
+            return False
+        gone = "" if self._path.parent.is_dir() else " (its directory is gone)"
+        self._deleted = True
+        self._displaced = f"{self._path} was deleted while being written{gone}"
+        return True
 
     def _count_whole_chunks(self) -> None:
         """A chunk that reached the file whole is readable even if the flush after it (or
