@@ -512,10 +512,10 @@ def play(u: np.ndarray, width_v: float) -> np.ndarray:
     return np.clip(u[0], lo, hi)
 
 
-def play_turns(u: np.ndarray, width_v: float) -> int:
-    """How often the play's output changes direction: each turn is a reversal of the
+def turns(played: np.ndarray) -> int:
+    """How often a play's output changes direction: each turn is a reversal of the
     input by more than twice the width, one half of a hysteresis loop."""
-    step = np.diff(play(np.array(u, dtype=float), width_v))
+    step = np.diff(played)
     sign = np.sign(step[step != 0])
     return int(np.count_nonzero(sign[1:] != sign[:-1]))
 
@@ -584,13 +584,14 @@ class ActuatorHysteresis(Effect):
         if self.width_v >= spread:
             return (f"play width {self.width_v:.3g} V is not below the command's spread "
                     f"({spread:.3g} V): a gain or a lag, not hysteresis")
-        turns = sum(play_turns(u, self.width_v) for u in ev.command_blocks_v())
-        if turns < MIN_TURNS:
-            return (f"a play of {self.width_v:.3g} V turns {turns} times in the log (a loop "
+        blocks = [(u, play(u, self.width_v)) for u in ev.command_blocks_v()]
+        turned = sum(turns(p) for _, p in blocks)
+        if turned < MIN_TURNS:
+            return (f"a play of {self.width_v:.3g} V turns {turned} times in the log (a loop "
                     f"needs {MIN_TURNS}): a ramp and a step, not hysteresis")
         shares = []
-        for u in ev.command_blocks_v():
-            added = play(u, self.width_v) - u
+        for u, p in blocks:
+            added = p - u
             a = np.column_stack([u, np.ones_like(u)])
             coef, *_ = np.linalg.lstsq(a, added, rcond=None)
             var = float(np.var(added))
