@@ -26,6 +26,11 @@ ENBW_BINS = 1.5
 # A periodogram bin is exponentially distributed about the spectrum: exceeding it 12-fold
 # happens by chance once in 160,000 bins.
 _OUTLIER_Z = 12.0
+#: Neighbouring bins whose basis terms all differ by less than this (relative) share one
+#: value of the fitted spectrum in the likelihood the fit maximises: a day-long span has
+#: 400,000 bins but only a few thousand distinct noise levels, so the fit runs on sums over
+#: such groups (exact where the spectrum is flat over a group) at a 100th of the cost.
+GROUP_REL = 0.01
 #: The lowest bins of a span are left out of the noise fit and get its extrapolation: a
 #: trend (a drift) lives there, and fitted to them the 1/f^4 term would soak it up.
 EXTRAPOLATED_BINS = 4
@@ -44,6 +49,10 @@ class NoiseSpectrum:
                                 pendulum_shape * f**-2.0])
         self.basis /= self.basis.mean(axis=1, keepdims=True)
         self.coef = np.zeros(len(self.basis))
+        # group starts: wherever the accumulated change of the basis reaches GROUP_REL
+        change = np.abs(np.diff(np.log(self.basis), axis=1)).max(axis=0)
+        group = np.floor(np.concatenate([[0.0], np.cumsum(change)]) / GROUP_REL)
+        self._starts = np.concatenate([[0], np.flatnonzero(np.diff(group)) + 1])
 
     def fit(self, p: np.ndarray, use: np.ndarray, known: np.ndarray | None = None
             ) -> np.ndarray:
@@ -78,19 +87,25 @@ class NoiseSpectrum:
 
     def _fit(self, p: np.ndarray, use: np.ndarray, known: np.ndarray | None = None
              ) -> np.ndarray:
-        """Whittle fit of the coefficients to periodogram p on bins `use`; returns S."""
-        b = self.basis[:, use]
-        pu = p[use]
-        scale = float(np.median(pu)) or 1.0
-        pu = pu / scale
-        fixed = 0.0 if known is None else known[use] / scale
+        """Whittle fit of the coefficients to periodogram p on bins `use`; returns S.
+        The likelihood is summed per group of bins of one noise level (`GROUP_REL`): a
+        group's m used bins with periodogram sum P count m ln S + P / S."""
+        scale = float(np.median(p[use])) or 1.0
+        w = use.astype(float)
+        m = np.add.reduceat(w, self._starts)
+        keep = m > 0
+        m = m[keep]
+        pg = np.add.reduceat(p * w, self._starts)[keep] / scale
+        b = np.add.reduceat(self.basis * w, self._starts, axis=1)[:, keep] / m
+        fixed = (0.0 if known is None else
+                 np.add.reduceat(known * w, self._starts)[keep] / m / scale)
 
         def nll(alpha: np.ndarray) -> tuple[float, np.ndarray]:
             c = np.exp(alpha)
             s = c @ b + fixed
-            ratio = pu / s
-            grad = ((1.0 - ratio) / s) @ b.T * c
-            return float(np.sum(ratio + np.log(s))), grad
+            ratio = pg / s
+            grad = ((m - ratio) / s) @ b.T * c
+            return float(np.sum(ratio + m * np.log(s))), grad
 
         best = None
         for start in (np.log([1.0, 1e-3, 1e-6, 1e-3, 1e-6]), np.full(len(b), np.log(0.2))):
