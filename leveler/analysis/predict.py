@@ -121,6 +121,11 @@ def load_measured(path: str | Path, model: str | Path | None = None) -> Measured
                     c if logged_text else None, s["state"] == "engaged", data.stop_reason)
 
 
+#: the last log `excitation_v` was asked about and its answer: a diagnosis asks four times
+#: about the same log, and each answer replays the controller sample by sample (3 s a day)
+_LAST_EXCITATION: tuple[Measured, np.ndarray | None] | None = None
+
+
 def excitation_v(meas: Measured) -> np.ndarray | None:
     """The part of the actuator voltage that is not the logged controller's answer to the
     logged readings (a modulation, a hand on the knob); None if the log does not say
@@ -130,6 +135,16 @@ def excitation_v(meas: Measured) -> np.ndarray | None:
     nothing about the actuator: "the piezo did not move" and "the table moved the other
     way" look the same, so diagnose does not look for actuator effects then.
     """
+    global _LAST_EXCITATION
+    if _LAST_EXCITATION is None or _LAST_EXCITATION[0] is not meas:
+        exc = _excitation_v(meas)
+        if exc is not None:
+            exc.flags.writeable = False  # shared by every caller: none may change it
+        _LAST_EXCITATION = (meas, exc)
+    return _LAST_EXCITATION[1]
+
+
+def _excitation_v(meas: Measured) -> np.ndarray | None:
     if meas.controller is None or meas.engaged is None:
         return _unexplained_by_feedback(meas)
     pid = PID(meas.controller.pid_config())
