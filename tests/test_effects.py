@@ -198,3 +198,19 @@ def test_two_equal_lags_keep_two_start_shapes() -> None:
         assert np.linalg.matrix_rank(shapes / np.linalg.norm(shapes, axis=0)) == 2
     one = TemperatureCoupling(tilt_per_kelvin_rad_per_k=1.0, lag_s=800.0)
     assert len(one.start_shapes(Signals(t, dt))) == 1
+
+
+@pytest.mark.parametrize("noise_steps", [0.05, 0.2, 0.3, 1.0, 3.0])
+def test_the_expected_reading_of_a_noisy_quantizer_is_its_mean_rounding(noise_steps: float) -> None:
+    """E[round(v + n)] for Gaussian n, by quadrature over n: the level sum (small noise)
+    and the Fourier series (from a quarter step) agree with it, and wide noise reads v."""
+    from leveler.sim.effects import _expected_excess
+
+    v = np.linspace(-0.5, 0.5, 41)
+    n = np.linspace(-8, 8, 400001) * noise_steps
+    weight = np.exp(-0.5 * (n / noise_steps) ** 2)
+    weight /= weight.sum()
+    quad = np.array([np.sum(np.floor(x + n + 0.5) * weight) for x in v])
+    np.testing.assert_allclose(_expected_excess(v, noise_steps), quad, atol=2e-4)
+    if noise_steps >= 1:
+        np.testing.assert_allclose(_expected_excess(v, noise_steps), v, atol=1e-8)

@@ -840,9 +840,25 @@ SMOOTH_NOISE_STEPS = 0.01
 SMOOTH_GRID = 4097
 
 
+#: replay noise (in steps) from which the expected reading is summed as a Fourier series
+FOURIER_NOISE_STEPS = 0.25
+
+
 def _expected_excess(v: np.ndarray, s: float) -> np.ndarray:
     """The expected reading's excess over the nearest level, in steps, for a signal `v`
-    steps from it with Gaussian noise of `s` steps at the quantizer's input."""
+    steps from it with Gaussian noise of `s` steps at the quantizer's input.
+
+    Rounding takes off a sawtooth, sum_k (-1)^(k+1) sin(2 pi k x) / (pi k), and the noise
+    damps its k-th harmonic by exp(-2 pi^2 k^2 s^2): from a quarter step on, four terms
+    are exact to 1e-13. Summed level by level instead, the cost grows with the noise: a
+    recalibration that ran it to thousands of steps (a converter the fit no longer
+    needed) took 0.8 s a call at 1,000 steps, and a diagnosis over half an hour."""
+    if s >= FOURIER_NOISE_STEPS:
+        e = v.copy()
+        for k in range(1, 5):
+            e -= ((-1) ** (k + 1) * math.exp(-2 * math.pi**2 * k * k * s * s) / (math.pi * k)
+                  * np.sin(2 * math.pi * k * v))
+        return e
     e = np.zeros_like(v)
     for j in range(int(6 * s) + 2):  # P(reading above / below the nearest level by j+1)
         e += ndtr((v - j - 0.5) / s) - ndtr((-v - j - 0.5) / s)
