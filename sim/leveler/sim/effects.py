@@ -623,10 +623,16 @@ class ActuatorHysteresis(Effect):
 
     @classmethod
     def guesses(cls, ev: Evidence) -> list[Effect]:
+        """The width of the few that fits best, among those whose play turns often enough
+        to be a loop at all (`degenerate`): the widest, a gain in all but name, fitted best
+        in strong independent Bouc-Wen logs, never turned over their square modulation and
+        was rejected, and no narrower width was tried."""
         spread = ev.command_spread_v()
         if spread <= 0:
             return []
-        widths = [spread * k for k in (0.02, 0.06, 0.2, 0.5)]
+        blocks = ev.command_blocks_v()
+        widths = [w for w in (spread * k for k in (0.02, 0.06, 0.2, 0.5))
+                  if sum(turns(play(u, w)) for u in blocks) >= MIN_TURNS]
         return ev.best_linear([cls(width_v=w, fraction=0.1) for w in widths], "fraction", keep=1)
 
 
