@@ -45,7 +45,9 @@ if str(HERE) not in sys.path:
 from independent.effects import FAMILIES, SEVERITIES  # noqa: E402
 from independent.generator import generate  # noqa: E402
 
+from leveler.analysis.recalibrate import PULL_LIMIT  # noqa: E402
 from leveler.analysis.workers import one_blas_thread  # noqa: E402
+from leveler.settings import load_config  # noqa: E402
 
 TUNING_SEEDS = (101, 102, 103)
 UNTOUCHED_SEEDS = tuple(range(9001, 9011))  # never look at these while tuning
@@ -201,6 +203,19 @@ def shrink(case: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def sensor_path_pull(truth: dict[str, Any]) -> float:
+    """A sensor gain error log's whole sensor path (the error compounded with the
+    calibration offsets the generator drew) over the tolerance the model file states for
+    it: what a recalibration sees. Within PULL_LIMIT it is an in-tolerance calibration to
+    any detector that keeps its false alarms at a per cent."""
+    u = load_config(REPO / "config" / "sim.toml")[0].plant.uncertainty
+    cal = truth["calibration_rel"]
+    total = ((1 + truth["params"]["gain_error"]) * (1 + cal["sensor_gain_rel"])
+             * (1 + cal["sensor_arm_rel"]) * (1 + cal["amplification_rel"]) - 1)
+    return total / math.sqrt(u.sensor_gain_rel**2 + u.sensor_arm_rel**2
+                             + u.amplification_rel**2)
+
+
 def summarize(cases: list[dict[str, Any]]) -> dict[str, Any]:
     rows = sorted({c["family"] for c in cases},
                   key=lambda f: (f == "none", FAMILIES.index(f) if f in FAMILIES else 99))
@@ -236,8 +251,14 @@ def summarize(cases: list[dict[str, Any]]) -> dict[str, Any]:
                         "fraction_first": first / len(sub),
                         "fraction_anywhere": anywhere / len(sub),
                         "wilson95_first": wilson(first, len(sub))}
+    gain = {}
+    for beyond in (True, False):
+        sub = [c for c in effects if c["family"] == "sensor_gain_error"
+               and (abs(sensor_path_pull(c["truth"])) > PULL_LIMIT) is beyond]
+        gain["beyond" if beyond else "within"] = {
+            "logs": len(sub), "named_first": sum(c["predicted"] == c["family"] for c in sub)}
     return {"rows": rows, "columns": cols, "confusion": matrix, "false_alarm": fa,
-            "per_severity": per_sev}
+            "per_severity": per_sev, "sensor_gain_vs_tolerance": gain}
 
 
 def _nm(x: float | None) -> str:
@@ -291,6 +312,13 @@ def render(summary: dict[str, Any], cases: list[dict[str, Any]], header: str) ->
                      f"{100 * s['fraction_first']:.0f} % first (95 %: {100 * lo:.0f}-"
                      f"{100 * hi:.0f} %), {s['named_anywhere']}/{s['logs']} anywhere, "
                      f"{s['named_first_params_agree']}/{s['logs']} with agreeing parameters")
+    gain = summary.get("sensor_gain_vs_tolerance")
+    if gain and gain["beyond"]["logs"] + gain["within"]["logs"]:
+        b, w_ = gain["beyond"], gain["within"]
+        lines.append(f"  sensor gain errors whose whole sensor path (with the drawn calibration "
+                     f"offsets) is beyond {PULL_LIMIT:g} sigma of the stated tolerance: "
+                     f"{b['named_first']}/{b['logs']} named first; within it (an in-tolerance "
+                     f"calibration to the model): {w_['named_first']}/{w_['logs']}")
     lines.append("")
     lines.append("Per case: residual gap as diagnose reports it (rms over the analysed span, nm), "
                  "before -> after its fit")
