@@ -58,7 +58,7 @@ class Spectra:
     """The periodograms and noise spectra of a set of blocks, flattened to one grid sorted
     by frequency, with the bins the noise was fitted on (the extrapolated lowest ones say
     nothing here). Sorted, the bins near a bump are one slice: a search scores thousands
-    of bumps, and masking a day's 400,000 bins for each took most of its time."""
+    of bumps, and masking a day's 200,000 bins for each took most of its time."""
 
     def __init__(self, w: Blocks, residual: np.ndarray) -> None:
         self._parts = [(part, part.periodogram(residual), ~part.extrapolated())

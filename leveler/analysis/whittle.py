@@ -27,9 +27,9 @@ ENBW_BINS = 1.5
 # happens by chance once in 160,000 bins.
 _OUTLIER_Z = 12.0
 #: Neighbouring bins whose basis terms all differ by less than this (relative) share one
-#: value of the fitted spectrum in the likelihood the fit maximises: a day-long span has
-#: 400,000 bins but only a few thousand distinct noise levels, so the fit runs on sums over
-#: such groups (exact where the spectrum is flat over a group) at a 100th of the cost.
+#: value of the fitted spectrum in the likelihood the fit maximises: half a day at 10 Hz
+#: has 216,000 bins but some 4,500 distinct noise levels, so the fit runs on sums over
+#: such groups (exact where the spectrum is flat over a group), 17x faster.
 GROUP_REL = 0.01
 #: The lowest bins of a span are left out of the noise fit and get its extrapolation: a
 #: trend (a drift) lives there, and fitted to them the 1/f^4 term would soak it up.
