@@ -204,18 +204,31 @@ class ControlServer:
         claim_socket_dir(self.path)
         if refuse_if_served(self.path):
             self.path.unlink()  # left behind by a daemon that died
+        # Bound and listening under a side name first, then linked into place: a client
+        # that sees the socket file is never refused (bound at its own name, the file
+        # appeared before listen(), and a test on a loaded CI runner connected in
+        # between), and a link, unlike a rename, never replaces another daemon's socket.
+        side = self.path.with_name(self.path.name + "~")
+        side.unlink(missing_ok=True)
         sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM | socket.SOCK_CLOEXEC)
         old = os.umask(0o117)  # the socket is born 0660: no window with wider access
         try:
-            sock.bind(str(self.path))
+            sock.bind(str(side))
         finally:
             os.umask(old)
-        st = os.lstat(self.path)
-        self._bound = (st.st_dev, st.st_ino)
-        os.chmod(self.path, 0o660)
-        if self._gid != os.getegid():
-            os.chown(self.path, -1, self._gid)
-        sock.listen(16)
+        try:
+            st = os.lstat(side)
+            self._bound = (st.st_dev, st.st_ino)
+            os.chmod(side, 0o660)
+            if self._gid != os.getegid():
+                os.chown(side, -1, self._gid)
+            sock.listen(16)
+            os.link(side, self.path)
+        except OSError:
+            sock.close()
+            raise
+        finally:
+            side.unlink(missing_ok=True)
         self._sock = sock
         self._thread = threading.Thread(target=self._accept, name="control", daemon=True)
         self._thread.start()
