@@ -252,7 +252,7 @@ class Evidence:
         actuator too little to be seen at the sensor (`actuator_excited`)."""
         if not hasattr(self, "_modulation"):
             exc = excitation_v(self.meas)
-            moved = exc is None or actuator_excited(self.meas, self.pred, slice(None), exc)
+            moved = exc is None or actuator_excited(self.meas, self.pred, slice(None))
             self._modulation = modulation_hz(exc, self.sig.dt_s) if moved else None
         return self._modulation
 

@@ -363,12 +363,11 @@ def _unexplained_by_feedback(meas: Measured) -> np.ndarray:
     return np.concatenate([[0.0, 0.0], np.cumsum(du - a @ coef)])
 
 
-def actuator_excited(meas: Measured, pred: Predictor, span: slice,
-                     exc: np.ndarray | None = None) -> bool:
+def actuator_excited(meas: Measured, pred: Predictor, span: slice) -> bool:
     """Did anything but feedback move the actuator enough to be seen at the sensor? In a
     closed loop the controller's replay differs from the log by rounding (1e-10 V), and
     a line of that, at a disturbance the loop answered, is no modulation."""
-    exc = excitation_v(meas) if exc is None else exc
+    exc = excitation_v(meas)
     if exc is None:  # not a leveler log: the voltage may well be a modulation
         return True
     p = pred.params
