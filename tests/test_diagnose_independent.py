@@ -10,11 +10,14 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 from conftest import REPO
 
-from leveler.analysis.diagnose import Diagnosis, diagnose
-from leveler.analysis.predict import load_measured
+from leveler.analysis.diagnose import Diagnosis, diagnose, make_blocks
+from leveler.analysis.evidence import Evidence
+from leveler.analysis.nuisance import Nuisance
+from leveler.analysis.predict import Predictor, excitation_v, load_measured
 
 sys.path.insert(0, str(REPO / "bench"))  # bench/ is no package
 from independent.generator import generate
@@ -87,3 +90,24 @@ def test_with_no_search_the_unexplained_structure_names_the_bump(tmp_path: Path)
     assert rest.leftover is not None and rest.leftover.bump is not None
     assert rest.leftover.bump.f0_hz == pytest.approx(truth["params"]["frequency_hz"], rel=0.02)
     assert "bump at 2.1" in rest.leftover.describe()
+
+
+def test_a_foreign_controllers_modulation_is_found(tmp_path: Path) -> None:
+    """The generator's own PID is not leveler's: replayed, its closed loop leaves volts of
+    "excitation", which on seed 9005's logs hid the open-loop square's line (84x the
+    median around it, where 100x is asked) and with it the rule that a periodic
+    disturbance on the modulation's harmonic is the actuator's response (a 252 s sine
+    took a sensor drift's place beside a 249 s square). The modulation, its line and the
+    span that resolves it, is read where the loop was open."""
+    log = tmp_path / "null.mcap"
+    truth = generate(None, "medium", 101, log, hours=3.0, modulated=True,
+                     nominal_config=REPO / "config" / "sim.toml", platform_inertia=True)
+    meas = load_measured(log)
+    pred = Predictor(meas.config.plant, meas)
+    ev = Evidence(meas, pred, make_blocks(meas, pred, [slice(3000, 30000)]),
+                  Nuisance(pred, None, meas))
+    mod = truth["modulation"]
+    assert ev.modulation_hz() == pytest.approx(1.0 / mod["period_s"], rel=0.005)
+    assert ev.modulation_span_s() == pytest.approx(mod["end_t_s"] - mod["start_t_s"], rel=0.1)
+    exc = excitation_v(meas)
+    assert exc is not None and np.ptp(exc[np.asarray(meas.engaged, dtype=bool)]) > 0.1

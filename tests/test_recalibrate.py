@@ -160,6 +160,9 @@ class _Spread:
     def modulation_hz(self) -> float:
         return 1.0 / 60.0
 
+    def modulation_span_s(self) -> float:  # ten cycles: lines resolved to 1/600 Hz
+        return 600.0
+
     def cooler_hz(self) -> float:
         return 1.0 / 300.0
 
@@ -230,6 +233,10 @@ def test_degenerate_fits_are_no_evidence() -> None:
     # A periodic tilt on a harmonic of the modulation is the actuator's response to it.
     assert "the actuator's response" in PeriodicDisturbance(period_s=60.0 / 7).degenerate(ev)  # type: ignore[arg-type]
     assert PeriodicDisturbance(period_s=60.0 / 7 * 1.02).degenerate(ev) == ""  # type: ignore[arg-type]
+    # ... within the modulation's resolution of it, too: 1.2 % off is 1/720 Hz off the
+    # 7th harmonic, and ten cycles tell lines apart only 1/600 Hz apart.
+    near = PeriodicDisturbance(period_s=60.0 / 7 * 1.012).degenerate(ev)  # type: ignore[arg-type]
+    assert "the actuator's response" in near
     assert PeriodicDisturbance(period_s=97.0).degenerate(ev) == ""  # type: ignore[arg-type]
     # ... and one on a harmonic of the modelled cooler is that cooler's own waveform.
     assert "modelled cooler" in PeriodicDisturbance(period_s=150.2).degenerate(ev)  # type: ignore[arg-type]

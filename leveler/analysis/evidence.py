@@ -16,7 +16,12 @@ from scipy.ndimage import median_filter
 
 from leveler.analysis.bump import Spectra
 from leveler.analysis.nuisance import Nuisance
-from leveler.analysis.predict import Measured, Predictor, actuator_excited, excitation_v
+from leveler.analysis.predict import (
+    Measured,
+    Predictor,
+    actuator_excited,
+    modulation_v,
+)
 from leveler.analysis.recalibrate import PULL_LIMIT
 from leveler.analysis.whittle import ENBW_BINS, EXTRAPOLATED_BINS, Blocks, hann
 from leveler.sim.effects import Effect
@@ -251,10 +256,21 @@ class Evidence:
         its strongest line (`modulation_hz`); None without one, or when it moved the
         actuator too little to be seen at the sensor (`actuator_excited`)."""
         if not hasattr(self, "_modulation"):
-            exc = excitation_v(self.meas)
+            exc = modulation_v(self.meas)
             moved = exc is None or actuator_excited(self.meas, self.pred, slice(None))
-            self._modulation = modulation_hz(exc, self.sig.dt_s) if moved else None
+            self._modulation = (modulation_hz(exc[_moving(exc)], self.sig.dt_s)
+                                if moved and exc is not None else None)
         return self._modulation
+
+    def modulation_span_s(self) -> float:
+        """How long the excitation moved the actuator [s] (first to last of its changes
+        above a thousandth of its largest): the span over which the lines of a
+        modulation can be told from those of anything else."""
+        exc = modulation_v(self.meas)
+        if exc is None:
+            return 0.0
+        span = _moving(exc)
+        return (span.stop - span.start) * self.sig.dt_s
 
     @property
     def pull_limit(self) -> float:
@@ -281,6 +297,13 @@ class Evidence:
     def natural_frequency_hz(self) -> float:
         """The model pendulum's: a line near it means its frequency or Q is off."""
         return self.pred.params.pendulum.natural_frequency_hz
+
+
+def _moving(exc: np.ndarray) -> slice:
+    """From the first to the last change of `exc` above a thousandth of its largest."""
+    step = np.abs(np.diff(exc))
+    moved = np.flatnonzero(step > 1e-3 * step.max()) if len(step) and step.max() > 0 else []
+    return slice(int(moved[0]), int(moved[-1]) + 2) if len(moved) else slice(0, 0)
 
 
 def modulation_hz(x: np.ndarray | None, dt_s: float) -> float | None:

@@ -65,6 +65,7 @@ class Evidence(Protocol):
     def lattice_deviance(self, step_m: float) -> float: ...
     def line_deviance(self, fx: Effect, f0_hz: float, harmonics: int) -> float: ...
     def modulation_hz(self) -> float | None: ...
+    def modulation_span_s(self) -> float: ...
     def cooler_hz(self) -> float | None: ...
     def sensor_path_pull(self, gain_error: float) -> float | None: ...
     def noise_std_m(self) -> float: ...
@@ -254,18 +255,24 @@ class PeriodicDisturbance(Effect):
     def degenerate(self, ev: Evidence) -> str:
         """A period on a harmonic of the log's modulation is the actuator's response to it
         (a hysteresis or a delay the form cannot hold), not a disturbance: a 0.3 nrad one on
-        the 7th harmonic of a triangle modulation had stood out of the noise. One on a
-        harmonic of the modelled cooler is that cooler's waveform, not the model's
-        sawtooth: a 299 s one followed a strong hysteresis, its evidence the lines of a
-        cooler of another form."""
+        the 7th harmonic of a triangle modulation had stood out of the noise. "On" is
+        within the modulation's resolution, one cycle over the span it ran: a 252 s sine
+        beside a 249 s square of 14 cycles took a sensor drift's place, its evidence the
+        square's response. One on a harmonic of the modelled cooler is that cooler's
+        waveform, not the model's sawtooth: a 299 s one followed a strong hysteresis,
+        its evidence the lines of a cooler of another form."""
         f = 1.0 / self.period_s
-        for f0, what, why in (
-                (ev.modulation_hz(), "the modulation's", "the actuator's response to it"),
-                (ev.cooler_hz(), "the modelled cooler's", "its waveform, not another one")):
+        span = ev.modulation_span_s()
+        for f0, what, why, resolution in (
+                (ev.modulation_hz(), "the modulation's", "the actuator's response to it",
+                 1.0 / span if span > 0 else 0.0),
+                (ev.cooler_hz(), "the modelled cooler's", "its waveform, not another one",
+                 0.0)):
             if f0 is None:
                 continue
             n = round(f / f0)
-            if 1 <= n <= MODULATION_HARMONICS and abs(f - n * f0) <= LOCKED_REL * f:
+            if (1 <= n <= MODULATION_HARMONICS
+                    and abs(f - n * f0) <= max(LOCKED_REL * f, resolution)):
                 return f"its period {self.period_s:.4g} s is {what} ({1 / f0:.4g} s) / {n}: {why}"
         return Effect.degenerate(self, ev)
 
