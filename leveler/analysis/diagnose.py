@@ -49,6 +49,7 @@ from leveler.analysis.predict import (
     Measured,
     Predictor,
     actuator_excited,
+    modulation_v,
     pendulum_filter,
     sensor_noise_m,
 )
@@ -163,17 +164,25 @@ def _known_psd(pred: Predictor) -> Callable[[np.ndarray], np.ndarray] | None:
                          np.zeros_like(f))
 
 
-def make_whitener(meas: Measured, pred: Predictor, span: slice) -> Whitener:
+def make_whitener(meas: Measured, pred: Predictor, span: slice, driven: bool = False
+                  ) -> Whitener:
+    """`driven`: the bins of the response to the modulation are left out of the noise fit
+    (`Whitener`'s `drive_m`), as the blocks candidates are scored on need: a short one
+    had fitted its noise to the comb a model a little wrong leaves there. The whole-log
+    whitener of the recalibration has the modulation's bins told apart its own way
+    (`recalibrate`)."""
+    exc = modulation_v(meas) if driven else None
     w = Whitener(span, len(meas.y_m), meas.dt_s,
                  functools.partial(_pendulum_shape, pred, meas),
                  red_ceiling(pred.params, meas.sig.temperature_k is not None),
-                 _known_psd(pred))
+                 _known_psd(pred),
+                 None if exc is None else pred.pend(pred.actuator_tilt(exc)))
     w.fit_noise(meas.y_m - pred.base.y_m)
     return w
 
 
 def make_blocks(meas: Measured, pred: Predictor, spans: list[slice]) -> Blocks:
-    return Blocks([make_whitener(meas, pred, s) for s in spans])
+    return Blocks([make_whitener(meas, pred, s, driven=True) for s in spans])
 
 
 #: A part of the log (the loop open, the loop closed) shorter than this is not split into
