@@ -13,14 +13,15 @@ import numpy as np
 import pytest
 from conftest import REPO
 
-from leveler.analysis.diagnose import diagnose
-from leveler.analysis.predict import load_measured
+from leveler.analysis.diagnose import _recalibrated, diagnose, warmup_samples
+from leveler.analysis.predict import Predictor, load_measured
 from leveler.analysis.synthetic import make_measured
 from leveler.cli.main import main
 from leveler.settings import Config, load_config
 from leveler.sim.effects import (
     ActuatorDelay,
     ActuatorHysteresis,
+    AdcQuantization,
     ExtraResonance,
     PeriodicDisturbance,
     SensorGainError,
@@ -75,6 +76,27 @@ def test_in_tolerance_offsets_are_a_recalibration_not_a_missing_effect(
     assert abs(off["natural_frequency"] - (F0 - 1)) < 0.002
     assert all(abs(d.recalibration.pull(k.name)) < 2 for k in d.recalibration.knobs)
     assert d.recalibration.disputed == []
+
+
+def test_a_found_converter_leaves_the_knobs_where_they_were(
+        offset_logs: dict[str, Path]) -> None:
+    """A converter in the model (found, or stated) puts a staircase between the knobs and
+    the reading, whose finite differences are steps, not slopes: the knobs ran to -9 and
+    +12 sigma on an independent log, all were held at nominal and its gap stayed at 105
+    of 111 nm. The knobs are fitted on the model without it (`replayable`), and the
+    model they give keeps it."""
+    meas = load_measured(offset_logs["offsets"])
+    plant = meas.config.plant
+    coarse = dataclasses.replace(plant, effects=plant.effects.with_effect(
+        AdcQuantization(step_m=2e-8, replay_noise_m=2e-9)))
+    whole = slice(warmup_samples(meas, Predictor(plant, meas)), None)
+    without = _recalibrated(meas, plant, whole, True)[1]
+    pred, with_it, _ = _recalibrated(meas, coarse, whole, True)
+    assert without is not None and with_it is not None
+    assert with_it.disputed == [] and with_it.held == ()
+    for k in without.knobs:
+        assert abs(with_it.pull(k.name) - without.pull(k.name)) < 0.1, k.name
+    assert pred.effects.adc_quantization == coarse.effects.adc_quantization
 
 
 def test_the_report_gives_each_recalibrated_value_with_its_pull(

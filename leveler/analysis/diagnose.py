@@ -53,7 +53,7 @@ from leveler.analysis.predict import (
     pendulum_filter,
     sensor_noise_m,
 )
-from leveler.analysis.recalibrate import Recalibration, apply, recalibrate
+from leveler.analysis.recalibrate import Recalibration, apply, recalibrate, replayable
 from leveler.analysis.told import red_ceiling
 from leveler.analysis.whittle import ENBW_BINS, Blocks, Whitener, deviance, hann
 from leveler.analysis.workers import one_blas_thread
@@ -344,7 +344,8 @@ def _recalibrated(meas: Measured, plant: PlantParams, whole: slice, excited: boo
     (a strong periodic case had its sensor path held then, and a sensor gain error
     taken second made the gap worse, 12.9 -> 15.8 nm)."""
     pred = Predictor(plant, meas)
-    w = make_whitener(meas, pred, whole)
+    smooth = replayable(plant)
+    w = make_whitener(meas, pred if smooth is plant else Predictor(smooth, meas), whole)
     recal = recalibrate(meas, plant, w, excited, refine=refine)
     if recal is not None and not recal.disputed and refine is None:
         first = Predictor(recal.params, meas)

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from leveler.analysis.predict import Measured, Predictor, sensor_noise_m
-from leveler.analysis.recalibrate import Recalibration, apply
+from leveler.analysis.recalibrate import Recalibration, apply, replayable
 from leveler.analysis.whittle import ENBW_BINS, Blocks, Whitener
 from leveler.sim.effects import Effect
 
@@ -53,11 +53,13 @@ class Nuisance:
         self.knobs = ks
         self.names = tuple(k.name for k in ks)
         cols = []
+        smooth = replayable(pred.params)  # a converter's staircase has no slope to take
+        about = pred if smooth is pred.params or not ks else Predictor(smooth, meas)
         for i, k in enumerate(ks):
             h = _STEP * k.sigma
             step = np.where(np.arange(len(ks)) == i, h, 0.0)
-            moved = Predictor(apply(pred.params, ks, step), meas)
-            cols.append((moved.base.y_m - pred.base.y_m) / h)
+            moved = Predictor(apply(smooth, ks, step), meas)
+            cols.append((moved.base.y_m - about.base.y_m) / h)
         states = _scaled(pred, pred.start_shapes(pred.effects))
         self.columns = np.array(cols + states).reshape(len(ks) + len(states), len(meas.y_m))
         # A prior on the total offset from nominal, x + d (1 + x) with d the relative change

@@ -29,7 +29,7 @@ from scipy.optimize import least_squares
 
 from leveler.analysis.predict import Measured, Predictor, excitation_v
 from leveler.analysis.whittle import ENBW_BINS, Whitener
-from leveler.sim.effects import Effect
+from leveler.sim.effects import Effect, EffectsParams
 from leveler.sim.params import PlantParams
 
 #: a pull beyond this many sigma is a calibration the log disputes
@@ -157,6 +157,28 @@ def apply(params: PlantParams, ks: list[Knob], x: np.ndarray) -> PlantParams:
     return params
 
 
+def replayable(params: PlantParams) -> PlantParams:
+    """`params` without the effects a replay cannot weigh (`Effect.own_score_only`: a
+    coarse converter). A knob moves the reading through a found converter's staircase,
+    and the fit's finite differences see steps, not slopes: with an 11 nm converter
+    found, the knobs ran to -9 and +12 sigma, all were held at nominal, and the gap
+    stayed at 105 of its 111 nm. Left out, the converter is noise of a step/sqrt(12) to
+    them, which is what the knobs saw before it was found."""
+    if not any(fx.own_score_only for fx in params.effects):
+        return params
+    kept = {fx.name: fx for fx in params.effects if not fx.own_score_only}
+    return dataclasses.replace(params, effects=EffectsParams(**kept))
+
+
+def with_unreplayable(params: PlantParams, source: PlantParams) -> PlantParams:
+    """`params` with `source`'s effects that `replayable` leaves out put back."""
+    effects = params.effects
+    for fx in source.effects:
+        if fx.own_score_only:
+            effects = effects.with_effect(fx)
+    return dataclasses.replace(params, effects=effects)
+
+
 def recalibrate(meas: Measured, params: PlantParams, w: Whitener,
                 excited: bool, omit: tuple[str, ...] = (),
                 refine: Effect | None = None) -> Recalibration | None:
@@ -171,6 +193,7 @@ def recalibrate(meas: Measured, params: PlantParams, w: Whitener,
     ks = knobs(params, meas.sig.temperature_k is not None, excited, omit)
     if not ks:
         return None
+    full, params = params, replayable(params)
     fkeys = refine.free if refine is not None else ()
     fscale = np.array([refine.scale(k) for k in fkeys]) if refine is not None else np.zeros(0)
     f0 = np.array([float(getattr(refine, k)) for k in fkeys])
@@ -227,7 +250,7 @@ def recalibrate(meas: Measured, params: PlantParams, w: Whitener,
     except np.linalg.LinAlgError:
         post = np.full(nk, math.inf)
     x = res.x[:nk] * sigma
-    return Recalibration(apply(effect_at(res.x[nk:]), ks, x), ks,
+    return Recalibration(with_unreplayable(apply(effect_at(res.x[nk:]), ks, x), full), ks,
                          {k.name: float(v) for k, v in zip(ks, x, strict=True)},
                          {k.name: float(v) for k, v in zip(ks, post, strict=True)}, deviance,
                          omit)
