@@ -61,6 +61,20 @@ def test_a_coupling_within_the_thermal_path_is_still_a_coupling(tmp_path: Path) 
     assert [f.effect.name for f in d.effects] == ["temperature_coupling"]
 
 
+@pytest.mark.slow  # 60 s; make test-slow
+def test_a_gain_error_taken_before_a_coupling_is_dropped_as_a_calibration(
+        tmp_path: Path) -> None:
+    """A strong coupling (12 urad/K through 599 s and 2,176 s lags) pulls the first
+    recalibration's sensor path beyond its tolerance, so the path is held and a "sensor
+    gain error" is named before the coupling. With the coupling in the model the path
+    recalibrates within its tolerance: the gain error was a calibration."""
+    d, _ = _diagnose(tmp_path, "temperature_coupling", "strong")
+    assert [f.effect.name for f in d.effects] == ["temperature_coupling"]
+    assert any(c.name == "sensor_gain_error" and c.note.startswith("dropped")
+               for c in d.candidates)
+    assert d.params is not None and d.model.sensor_gain_error is None
+
+
 def test_a_modulated_null_log_names_nothing(tmp_path: Path) -> None:
     d, _ = _diagnose(tmp_path, None, "strong")
     assert d.effects == [] and not d.ambiguous
