@@ -144,19 +144,23 @@ def excitation_v(meas: Measured) -> np.ndarray | None:
     return _LAST_EXCITATION[1]
 
 
+#: an open-loop part shorter than this [s] holds no modulation worth reading
+MIN_OPEN_S = 300.0
+
+
 def modulation_v(meas: Measured) -> np.ndarray | None:
     """`excitation_v` where the loop was open, held at its nearest open value elsewhere,
-    if the log has an open part (a modulation with the loop open); else all of it. In a
-    closed loop, the excitation is the difference between the log's controller and its
-    replay: rounding for leveler's own, but volts and wandering for one leveler did not
-    write (an independent simulator's integrator: 7.7 V), which hides the modulation's
-    line and would pass for a drive of its own."""
+    if the log has an open part (MIN_OPEN_S: a modulation with the loop open); else all
+    of it. In a closed loop, the excitation is the difference between the log's
+    controller and its replay: rounding for leveler's own, but volts and wandering for
+    one leveler did not write (an independent simulator's integrator: 7.7 V), which
+    hides the modulation's line and would pass for a drive of its own."""
     exc = excitation_v(meas)
     if exc is None or meas.engaged is None:
         return exc
     is_open = ~np.asarray(meas.engaged, dtype=bool)
-    if not is_open.any() or is_open.all():
-        return exc
+    if np.count_nonzero(is_open) * meas.dt_s < MIN_OPEN_S or is_open.all():
+        return exc  # a sample or two before the loop engaged are no modulation
     idx = np.where(is_open, np.arange(len(exc)), -1)
     idx = np.maximum.accumulate(idx)  # the last open sample at or before each one
     idx[idx < 0] = int(np.flatnonzero(is_open)[0])  # before the first: the first
