@@ -36,9 +36,9 @@ GROUP_REL = 0.01
 EXTRAPOLATED_BINS = 4
 #: A bin where a 10 % error of the excitation's response (1e-2 of its power) would stand
 #: above the noise carries that response, not noise: it is left out of the noise fit. A
-#: resonance 0.5 % off with Q 18 is already that wrong near it (at 3 %, 96 of a short
-#: block's 5,293 bins were left out; at 10 %, 661, and the held-out evidence of a strong
-#: delay went from -1,864 to +42,314, its training part's 590,000 on twice the bins).
+#: resonance 0.5 % off with Q 18 is already that wrong near it: at 1 % (29 of a short
+#: block's 5,293 bins left out) the held-out evidence of a strong delay was still -1,864,
+#: at 3 % (96 bins) -2,137, at 10 % (661 bins) +42,314, its training part's 590,000.
 DRIVEN_REL = 1e-2
 
 
