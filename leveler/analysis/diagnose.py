@@ -510,8 +510,7 @@ def _calibration_after_all(meas: Measured, found: list[Found],
     refine = (others[0] if len(others) == 1 and not _noise_rung(others[0])
               and not others[0].own_score_only else None)
     again = _recalibrated(meas, dataclasses.replace(
-        meas.config.plant, effects=EffectsParams(**{fx.name: fx for fx in others})),
-        whole, excited, refine)
+        meas.config.plant, effects=model[0].effects.without(gain.name)), whole, excited, refine)
     recal = again[1]
     if recal is None or "sensor_path" not in {k.name for k in recal.knobs}:
         return found, model  # held: the log disputes the path even with the others

@@ -29,7 +29,7 @@ from scipy.optimize import least_squares
 
 from leveler.analysis.predict import Measured, Predictor, excitation_v
 from leveler.analysis.whittle import ENBW_BINS, Whitener
-from leveler.sim.effects import Effect, EffectsParams
+from leveler.sim.effects import Effect
 from leveler.sim.params import PlantParams
 
 #: a pull beyond this many sigma is a calibration the log disputes
@@ -164,10 +164,10 @@ def replayable(params: PlantParams) -> PlantParams:
     found, the knobs ran to -9 and +12 sigma, all were held at nominal, and the gap
     stayed at 105 of its 111 nm. Left out, the converter is noise of a step/sqrt(12) to
     them, which is what the knobs saw before it was found."""
-    if not any(fx.own_score_only for fx in params.effects):
+    unweighable = [fx.name for fx in params.effects if fx.own_score_only]
+    if not unweighable:
         return params
-    kept = {fx.name: fx for fx in params.effects if not fx.own_score_only}
-    return dataclasses.replace(params, effects=EffectsParams(**kept))
+    return dataclasses.replace(params, effects=params.effects.without(*unweighable))
 
 
 def with_unreplayable(params: PlantParams, source: PlantParams) -> PlantParams:

@@ -994,3 +994,6 @@ class EffectsParams:
 
     def with_effect(self, fx: Effect) -> EffectsParams:
         return EffectsParams(**{n: getattr(self, n) for n in _ORDER} | {fx.name: fx})
+
+    def without(self, *names: str) -> EffectsParams:
+        return EffectsParams(**{n: getattr(self, n) for n in _ORDER if n not in names})
