@@ -15,7 +15,7 @@ import numpy as np
 from scipy.ndimage import median_filter
 
 from leveler.analysis.bump import Spectra
-from leveler.analysis.nuisance import Nuisance
+from leveler.analysis.nuisance import Nuisance, with_shapes
 from leveler.analysis.predict import (
     Measured,
     Predictor,
@@ -45,8 +45,11 @@ LINE_OFFSET_BINS = 3
 
 class Evidence:
     def __init__(self, meas: Measured, pred: Predictor, blocks: Blocks,
-                 nuisance: Nuisance) -> None:
+                 nuisance: Nuisance, part_gains: list[np.ndarray] | None = None) -> None:
+        """`part_gains`: `nuisance.part_gains`, solved out for the families that must show
+        more than a gain (`Effect.beyond_part_gains`) where their evidence is weighed."""
         self.meas = meas
+        self.part_gains = part_gains or []
         self.sig = meas.sig
         self.pred = pred
         self.w = blocks
@@ -186,7 +189,9 @@ class Evidence:
         after = self.meas.y_m - self.pred.with_candidate(fx)
         gains = []
         for p in self.w.parts:
-            cost = self.nuisance.on(p).cost
+            proj = self.nuisance.on(p)
+            cost = (with_shapes(proj, p, self.part_gains) if fx.beyond_part_gains
+                    else proj).cost
             gains.append(max(0.0, cost(p.whiten(self.residual)) - cost(p.whiten(after))))
         return gains
 

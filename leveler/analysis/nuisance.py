@@ -72,7 +72,7 @@ class Nuisance:
         self.prior_shift = root * np.asarray(x) / sigma if ks else np.zeros(0)
         self.states = len(states)
 
-    def on(self, w: Whitener) -> Projection:
+    def on(self, w: Whitener | Blocks) -> Projection:
         return Projection(np.array([w.whiten(c) for c in self.columns]).T
                           if len(self.columns) else np.zeros((0, 0)),
                           self.prior_gain, self.prior_shift, self.states)
@@ -91,10 +91,29 @@ def with_states(proj: Projection, w: Whitener | Blocks, pred: Predictor, fx: Eff
     residual instead, a coupling's start took up slow structure the calibration left
     and turned the fit's sign (a 2.6 urad/K coupling fitted at -3.3, worse than none by
     714 where the truth gains 559)."""
-    states = _scaled(pred, pred.state_shapes(fx))
-    if not states:
+    return with_shapes(proj, w, _scaled(pred, pred.state_shapes(fx)), keep)
+
+
+def with_shapes(proj: Projection, w: Whitener | Blocks, shapes: list[np.ndarray],
+                keep: Any = slice(None)) -> Projection:
+    """`proj` with `shapes` (readings [m], scaled like `_scaled`'s) free beside the knobs."""
+    if not shapes:
         return proj
-    return proj.extended(np.array([w.whiten(s)[keep] for s in states]).T)
+    return proj.extended(np.array([w.whiten(s)[keep] for s in shapes]).T)
+
+
+def part_gains(pred: Predictor, parts: list[slice]) -> list[np.ndarray]:
+    """The reading's response to the logged command, one shape per part of the log (zero
+    outside it; its mean in it removed): free, they are an actuator gain of each part's
+    own, for an effect that must show more than a gain (`Effect.beyond_part_gains`)."""
+    u = pred.meas.u_v
+    response = pred.pend(pred.actuator_tilt(u - u[0]))
+    shapes = []
+    for part in parts:
+        s = np.zeros_like(response)
+        s[part] = response[part] - np.mean(response[part])
+        shapes.append(s)
+    return _scaled(pred, shapes)
 
 
 def predictive_cost(train: Projection, test: Projection, white_train: np.ndarray,

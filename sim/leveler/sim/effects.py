@@ -88,6 +88,10 @@ class Effect:
     # Its own held-out evidence (`held_out_deviance`) replaces the replay's, and the size
     # gate with it: the replay cannot weigh the effect at all.
     own_score_only: ClassVar[bool] = False
+    # Scored beyond a free actuator gain in each part of the log (the loop open under a
+    # modulation, the loop closed), its baseline too: only what no such gain explains is
+    # its evidence (`leveler.analysis.diagnose`).
+    beyond_part_gains: ClassVar[bool] = False
 
     def values(self) -> dict[str, Any]:
         return {f.name: getattr(self, f.name) for f in fields(self)}  # type: ignore[arg-type]
@@ -554,6 +558,13 @@ class ActuatorHysteresis(Effect):
     free: ClassVar[tuple[str, ...]] = ("width_v", "fraction")
     magnitude: ClassVar[str] = "fraction"
     needs_excitation: ClassVar[bool] = True
+    # Under a square modulation a piezo's hysteresis is a smaller gain than the closed
+    # loop's long sweeps see, which a sensor gain error or a calibration does as well; its
+    # own mark is the turn of direction, where the closed loop's small reversals (the
+    # cooler's) meet a stroke that lags. An independent strong Bouc-Wen log: a play held
+    # out +2,700 as a 4 V "gain" with its fraction negative (a loop the wrong way round),
+    # and 674 with 0.08-0.46 V and +0.165 (the truth's a = 0.21) beyond a gain per part.
+    beyond_part_gains: ClassVar[bool] = True
 
     model: Literal["prandtl_ishlinskii"] = "prandtl_ishlinskii"
     width_v: float = positive(1.0)
@@ -630,17 +641,18 @@ class ActuatorHysteresis(Effect):
 
     @classmethod
     def guesses(cls, ev: Evidence) -> list[Effect]:
-        """The width of the few that fits best, among those whose play turns often enough
-        to be a loop at all (`degenerate`): the widest, a gain in all but name, fitted best
-        in strong independent Bouc-Wen logs, never turned over their square modulation and
-        was rejected, and no narrower width was tried."""
+        """Two starts a decade apart, each scanned over a factor of 8 either way by the fit,
+        among widths whose play turns often enough to be a loop at all (`degenerate`). One
+        start picked by a plain least-squares cost is the widest, a gain in all but name:
+        it fitted best in strong independent Bouc-Wen logs, never turned over their square
+        modulation, and the closed loop's sub-volt reversals, where the loop shows, were
+        never tried."""
         spread = ev.command_spread_v()
         if spread <= 0:
             return []
         blocks = ev.command_blocks_v()
-        widths = [w for w in (spread * k for k in (0.02, 0.06, 0.2, 0.5))
-                  if sum(turns(play(u, w)) for u in blocks) >= MIN_TURNS]
-        return ev.best_linear([cls(width_v=w, fraction=0.1) for w in widths], "fraction", keep=1)
+        return [cls(width_v=w, fraction=0.1) for w in (spread * k for k in (0.01, 0.1))
+                if sum(turns(play(u, w)) for u in blocks) >= MIN_TURNS]
 
 
 # -- response: extra displacement at the sensor driven by the piezo tilt ---------------------
