@@ -87,6 +87,23 @@ def test_an_effect_the_whole_log_does_not_confirm_is_not_taken(tmp_path: Path) -
     assert any(c.note.startswith("the whole log's fit disagrees") for c in d.candidates)
 
 
+def test_a_hysteresis_under_a_square_modulation_shows_in_the_closed_loops_reversals(
+        tmp_path: Path) -> None:
+    """A strong Bouc-Wen piezo (a = 0.147) under a square modulation (tuning seed 107): over
+    the square every play is a gain, and the plays fitted there were rejected as one.
+    Scored beyond a free actuator gain per part of the log, a sub-volt play is found
+    where the closed loop reverses, with the small-signal share of the truth's loop."""
+    log = tmp_path / "hysteresis.mcap"
+    truth = generate("actuator_hysteresis", "strong", 107, log, hours=3.0, modulated=True,
+                     nominal_config=REPO / "config" / "sim.toml", platform_inertia=True)
+    assert truth["modulation"]["shape"] == "square"
+    d = diagnose(load_measured(log))
+    assert [f.effect.name for f in d.effects] == ["actuator_hysteresis"]
+    play = d.effects[0].effect
+    assert play.width_v < 1.0  # type: ignore[attr-defined]
+    assert 0.5 < play.fraction / truth["params"]["a"] < 1.5  # type: ignore[attr-defined]
+
+
 def test_a_modulated_null_log_names_nothing(tmp_path: Path) -> None:
     d, _ = _diagnose(tmp_path, None, "strong")
     assert d.effects == [] and not d.ambiguous
