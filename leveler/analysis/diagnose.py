@@ -412,7 +412,7 @@ def diagnose(meas: Measured, max_effects: int = 4,
         for family_tried, family_passed in _each_family(families, r, jobs):
             tried += family_tried
             passed += family_passed
-        stable = _select(passed, lambda f, r=r: _refit(f, pred, w_test, meas,
+        stable = _select(passed, lambda f, r=r: _refit(f, r.pred, r.w_test, r.meas,
                                                        r.scored_on(type(f.effect))[1]))
         if not stable:
             break
