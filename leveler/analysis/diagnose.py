@@ -412,76 +412,34 @@ def diagnose(meas: Measured, max_effects: int = 4,
         for family_tried, family_passed in _each_family(families, r, jobs):
             tried += family_tried
             passed += family_passed
-        stable = _select(passed, lambda f, r=r: _refit(f, r.pred, r.w_test, r.meas,
-                                                       r.scored_on(type(f.effect))[1]))
-        if not stable:
-            break
-        if len(stable) == 2:  # two families the log cannot tell apart: neither is taken
-            ambiguous = [stable[0][1], stable[1][1]]
-            for c in ambiguous:
-                c.note = "ambiguous: " + " / ".join(a.name for a in ambiguous)
-            break
-        f, cand, check = stable[0]
-        cand.accepted = True
-        # Refit on the whole log with the noise spectrum of what the effect leaves: the
-        # spectrum fitted before it was found has soaked up part of a broadband effect
-        # (a temperature coupling is red), which would blunt the fit where it matters.
-        # One noise spectrum for the whole log, open loop and closed, whitens the closed
-        # loop's small reversals with the modulation's noise: a strong independent
-        # Bouc-Wen log's play, 0.076 V and 0.17 held out, came out 0.018 V and 0.035 so,
-        # and 0.076 V and 0.14 on a spectrum per part.
-        w_whole: Whitener | Blocks = (make_blocks(meas, pred, parts)
-                                      if f.effect.beyond_part_gains
-                                      else make_whitener(meas, pred, whole))
-        final = f
-        for _ in range(1 if _noise_rung(f.effect) else 2):  # its residual does not change
-            w_whole.fit_noise(meas.y_m - pred.with_candidate(final.effect))
-            if f.effect.own_score_only:  # see `refined` below
+        # The best candidate that held out, confirmed on the whole log; one the whole log
+        # disagrees with gives way to the next (a jittered sawtooth's best fit came out at
+        # 0.497 of its size there, and its sine and its other sawtooth, both right, were
+        # never looked at).
+        outcome: tuple[tuple[Predictor, Recalibration | None, Nuisance], Found] | None = None
+        while passed and outcome is None:
+            stable = _select(passed, lambda f, r=r: _refit(f, r.pred, r.w_test, r.meas,
+                                                           r.scored_on(type(f.effect))[1]))
+            if not stable:
                 break
-            on_whole = nuisance.on(w_whole)
-            if f.effect.beyond_part_gains:
-                on_whole = with_shapes(on_whole, w_whole, r.part_gains)
-            refit = _refit(final, pred, w_whole, meas, on_whole)
-            if refit.effect.degenerate(ev):  # what held out was the fit before this one
+            if len(stable) == 2:  # two families the log cannot tell apart: neither is taken
+                ambiguous = [stable[0][1], stable[1][1]]
+                for c in ambiguous:
+                    c.note = "ambiguous: " + " / ".join(a.name for a in ambiguous)
                 break
-            final = refit
-        # The noise model's 1-sigma misses systematic errors; how far the fits to the two
-        # parts of the log, and to the whole, disagree is an honest floor under it.
-        sigma = {k: math.hypot(v, 0.5 * f.effect.difference(check.effect, k),
-                               final.effect.difference(f.effect, k))
-                 for k, v in final.sigma.items()}
-        # The baseline again, with what was found: an effect not yet in the model biased it,
-        # and the effect's fit on that biased baseline is refined with it.
-        plant = dataclasses.replace(meas.config.plant,
-                                    effects=pred.effects.with_effect(final.effect))
-        around = _recalibrated(meas, plant, whole, act_excited)  # the knobs around the fit
-        # A mode rung by noise alone changes no prediction: nothing to refine with the knobs.
-        # An effect scored by its own evidence is not refined by replay's likelihood either:
-        # that is not what found it. Refined so, converters ran to no converter at all
-        # (steps of 1e-6 nm under 14 nm of replay noise, 5 of 9 independent logs) once
-        # their replay was exact enough for the fit to get there. Nor is one scored beyond
-        # a gain per part: with the knobs alone it would take up a gain again.
-        refined = (around if _noise_rung(final.effect) or final.effect.own_score_only
-                   or final.effect.beyond_part_gains else
-                   _recalibrated(meas, plant, whole, act_excited, final.effect))
-        # The refinement may wander where no held-out fit went: a day's null log had a
-        # 3.4 V play become 37 V (a gain); a jittered sawtooth's sine moved from 183 to
-        # 187 s at a quarter of its size, fitted on the bins its lines leave quiet: a gap
-        # of 54 nm, where the fit that held out leaves 3.5. It is kept only where it does
-        # better on all bins.
-        if (getattr(refined[0].effects, final.effect.name).degenerate(ev)
-                or _cost(meas, around, w_whole) < _cost(meas, refined, w_whole)):
-            refined = around
-        kept = getattr(refined[0].effects, final.effect.name)
-        if not _stable(f.effect, kept):
-            # The whole log does not confirm what held out: a null log's coupling held
-            # out at -0.18 urad/K through a 52 s lag and became +0.49 through 727 s.
-            cand.accepted = False
-            cand.note = (f"the whole log's fit disagrees: size {kept.size():.3g} for "
-                         f"{f.effect.size():.3g}")
+            f, cand, check = stable[0]
+            confirmed = _confirm(r, f, check, nuisance, parts, whole, act_excited)
+            if isinstance(confirmed, str):
+                cand.note = confirmed
+                passed = [p for p in passed if p[1] is not cand]
+                continue
+            cand.accepted = True
+            outcome = confirmed[0], Found(confirmed[1].canonical(), confirmed[2],
+                                          cand.deviance_test)
+        if outcome is None:
             break
-        pred, recal, nuisance = refined
-        found.append(Found(kept.canonical(), sigma, cand.deviance_test))
+        (pred, recal, nuisance), found_one = outcome
+        found.append(found_one)
     found, (pred, recal, nuisance) = _calibration_after_all(
         meas, found, (pred, recal, nuisance), whole, act_excited, tried)
     settled = _settled(meas, pred, recal, nuisance, whole)
@@ -508,6 +466,73 @@ def diagnose(meas: Measured, max_effects: int = 4,
                      dataclasses.replace(pred.params, effects=EffectsParams()), recal,
                      ambiguous, rest,
                      normalised_gap(w_te, meas.y_m - nominal.base.y_m, meas.y_m - pred.base.y_m))
+
+
+
+def _confirm(r: _Round, f: Fit, check: Fit, nuisance: Nuisance, parts: list[slice],
+             whole: slice, act_excited: bool
+             ) -> tuple[tuple[Predictor, Recalibration | None, Nuisance], Effect,
+                        dict[str, float]] | str:
+    """`f`, the best fit that held out (`check`: its fit to the held-out part), refitted on
+    the whole log and the knobs recalibrated around it: (the model with it, the effect as
+    kept, its 1-sigma uncertainties), or why the whole log does not confirm it."""
+    meas, pred, ev = r.meas, r.pred, r.ev
+    # Refit on the whole log with the noise spectrum of what the effect leaves: the
+    # spectrum fitted before it was found has soaked up part of a broadband effect
+    # (a temperature coupling is red), which would blunt the fit where it matters.
+    # One noise spectrum for the whole log, open loop and closed, whitens the closed
+    # loop's small reversals with the modulation's noise: a strong independent
+    # Bouc-Wen log's play, 0.076 V and 0.17 held out, came out 0.018 V and 0.035 so,
+    # and 0.076 V and 0.14 on a spectrum per part.
+    w_whole: Whitener | Blocks = (make_blocks(meas, pred, parts)
+                                  if f.effect.beyond_part_gains
+                                  else make_whitener(meas, pred, whole))
+    final = f
+    for _ in range(1 if _noise_rung(f.effect) else 2):  # its residual does not change
+        w_whole.fit_noise(meas.y_m - pred.with_candidate(final.effect))
+        if f.effect.own_score_only:  # see `refined` below
+            break
+        on_whole = nuisance.on(w_whole)
+        if f.effect.beyond_part_gains:
+            on_whole = with_shapes(on_whole, w_whole, r.part_gains)
+        refit = _refit(final, pred, w_whole, meas, on_whole)
+        if refit.effect.degenerate(ev):  # what held out was the fit before this one
+            break
+        final = refit
+    # The noise model's 1-sigma misses systematic errors; how far the fits to the two
+    # parts of the log, and to the whole, disagree is an honest floor under it.
+    sigma = {k: math.hypot(v, 0.5 * f.effect.difference(check.effect, k),
+                           final.effect.difference(f.effect, k))
+             for k, v in final.sigma.items()}
+    # The baseline again, with what was found: an effect not yet in the model biased it,
+    # and the effect's fit on that biased baseline is refined with it.
+    plant = dataclasses.replace(meas.config.plant,
+                                effects=pred.effects.with_effect(final.effect))
+    around = _recalibrated(meas, plant, whole, act_excited)  # the knobs around the fit
+    # A mode rung by noise alone changes no prediction: nothing to refine with the knobs.
+    # An effect scored by its own evidence is not refined by replay's likelihood either:
+    # that is not what found it. Refined so, converters ran to no converter at all
+    # (steps of 1e-6 nm under 14 nm of replay noise, 5 of 9 independent logs) once
+    # their replay was exact enough for the fit to get there. Nor is one scored beyond
+    # a gain per part: with the knobs alone it would take up a gain again.
+    refined = (around if _noise_rung(final.effect) or final.effect.own_score_only
+               or final.effect.beyond_part_gains else
+               _recalibrated(meas, plant, whole, act_excited, final.effect))
+    # The refinement may wander where no held-out fit went: a day's null log had a
+    # 3.4 V play become 37 V (a gain); a jittered sawtooth's sine moved from 183 to
+    # 187 s at a quarter of its size, fitted on the bins its lines leave quiet: a gap
+    # of 54 nm, where the fit that held out leaves 3.5. It is kept only where it does
+    # better on all bins.
+    if (getattr(refined[0].effects, final.effect.name).degenerate(ev)
+            or _cost(meas, around, w_whole) < _cost(meas, refined, w_whole)):
+        refined = around
+    kept = getattr(refined[0].effects, final.effect.name)
+    if not _stable(f.effect, kept):
+        # The whole log does not confirm what held out: a null log's coupling held
+        # out at -0.18 urad/K through a 52 s lag and became +0.49 through 727 s.
+        return (f"the whole log's fit disagrees: size {kept.size():.3g} for "
+                f"{f.effect.size():.3g}")
+    return refined, kept, sigma
 
 
 def _calibration_after_all(meas: Measured, found: list[Found],
