@@ -18,8 +18,11 @@ a candidate is scored only on what no in-tolerance knob explains. Then, per roun
    the held-out part on its own with a compatible size (same sign, within 2x); when the
    best of another family does too and its evidence is within AMBIGUITY, the answer is
    "ambiguous between A and B" and the search stops there, taking neither;
-4. the winner is refitted on the whole log, added to the model, and the round repeats;
-   when nothing passes, the search stops and says so: no effect is invented.
+4. the winner is refitted on the whole log and, if that fit agrees with the one that held
+   out (else the next that held out takes its place), added to the model, and the round
+   repeats; when nothing passes, the search stops and says so: no effect is invented.
+A family that must show more than a gain (hysteresis: `Effect.beyond_part_gains`) is
+fitted and scored with a free actuator gain in each part of the log, its baseline too.
 Lines left in the held-out residual beyond a look-elsewhere threshold are then reported
 as unexplained structure (`leveler.analysis.leftover`), never given the nearest name.
 """
