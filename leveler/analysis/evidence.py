@@ -207,6 +207,12 @@ class Evidence:
         return lattice_deviance(self._spans(self.meas.y_m), self.pred.params.sensor.lsb_m,
                                 step_m, self._spans(self.pred.base.y_m))
 
+    def readings_on_lattice(self, step_m: float) -> list[tuple[float, float]]:
+        """Per block: how many steps of `step_m` the readings spread over (5th to 95th
+        percentile), and Rayleigh's statistic n |mean exp(2 pi i y / step)|^2 of their
+        phase on that lattice (about 1 where they fall anywhere, n where on its levels)."""
+        return [readings_phase(y, step_m) for y in self._spans(self.meas.y_m)]
+
     def line_deviance(self, fx: Effect, f0_hz: float, harmonics: int) -> float:
         """Evidence for `fx`'s lines (its first `harmonics` of `f0_hz`), not its waveform,
         on the blocks: Whittle's likelihood of the residual's periodogram with the
@@ -396,6 +402,13 @@ def find_lattice(spans: list[np.ndarray], lsb_m: float,
     y = np.concatenate(spans)
     offset = float(np.angle(np.mean(np.exp(2j * np.pi * y / step)))) / (2 * np.pi) * step
     return step, offset
+
+
+def readings_phase(y: np.ndarray, step_m: float) -> tuple[float, float]:
+    """(how many steps of `step_m` the readings `y` spread over, 5th to 95th percentile;
+    Rayleigh's statistic n |mean exp(2 pi i y / step)|^2 of their phase on that lattice)."""
+    spread = float(np.percentile(y, 95) - np.percentile(y, 5)) / step_m
+    return spread, len(y) * abs(np.mean(np.exp(2j * np.pi * y / step_m))) ** 2
 
 
 def lattice_deviance(spans: list[np.ndarray], lsb_m: float, step_m: float,

@@ -63,6 +63,7 @@ class Evidence(Protocol):
     def block_gains(self, fx: Effect) -> list[float]: ...
     def lattice(self) -> tuple[float, float] | None: ...
     def lattice_deviance(self, step_m: float) -> float: ...
+    def readings_on_lattice(self, step_m: float) -> list[tuple[float, float]]: ...
     def line_deviance(self, fx: Effect, f0_hz: float, harmonics: int) -> float: ...
     def modulation_hz(self) -> float | None: ...
     def modulation_span_s(self) -> float: ...
@@ -890,6 +891,12 @@ def _expected_excess(v: np.ndarray, s: float) -> np.ndarray:
     return e
 
 
+#: a block whose readings spread over this many converter steps shows its levels, and
+#: Rayleigh's statistic of the readings' phase on them beats this (chance odds e^-10)
+LATTICE_SPREAD_STEPS = 3.0
+LATTICE_READINGS_Z = 10.0
+
+
 @dataclass(frozen=True, slots=True)
 class AdcQuantization(Effect):
     """Readings on a coarser lattice than the model's ADC: fewer effective bits, a lower
@@ -956,6 +963,19 @@ class AdcQuantization(Effect):
         training part misplaces it once the model's error has wandered by a step (a
         26 nm converter: training evidence 9,556, held-out 243, then -6,236)."""
         return ev.lattice_deviance(self.step_m)
+
+    def degenerate(self, ev: Evidence) -> str:
+        """Where the readings cross several of its steps, a converter's levels show in the
+        readings themselves, not only in their changes. A modulation's steps and the ringing
+        after them repeat with the same sizes every cycle, and the changes a model a little
+        wrong leaves unpredicted line up on some step: a modulated null log's "65 nm
+        converter" held out at 40, its readings spread evenly over its lattice (Rayleigh z
+        3 over 19 steps) where true converters' sit on theirs (z 81-693)."""
+        for spread, z in ev.readings_on_lattice(self.step_m):
+            if spread >= LATTICE_SPREAD_STEPS and z < LATTICE_READINGS_Z:
+                return (f"where the readings cross {spread:.0f} of its steps they do not sit "
+                        f"on its levels (Rayleigh z {z:.2g}): repeated steps, not a converter")
+        return Effect.degenerate(self, ev)
 
     @classmethod
     def guesses(cls, ev: Evidence) -> list[Effect]:
