@@ -11,9 +11,9 @@ from leveler.analysis.evidence import (
     find_lattice,
     lattice_deviance,
     modulation_hz,
-    readings_phase,
+    readings_on_levels,
 )
-from leveler.sim.effects import LATTICE_READINGS_Z, LATTICE_SPREAD_STEPS
+from leveler.sim.effects import LEVEL_WINDOWS, LEVEL_Z
 
 LSB_M = 20.0 / 2**16 / 2.0e5  # the default 16-bit, +-10 V ADC at 2e5 V/m: 1.53 nm
 
@@ -79,14 +79,17 @@ def test_the_held_out_score_of_a_lattice_is_a_deviance() -> None:
 def test_readings_through_a_converter_sit_on_its_levels(seed: int) -> None:
     """What rejects a lattice that only the changes show (`AdcQuantization.degenerate`):
     readings through a coarse converter with a little noise after it cluster on its
-    levels; a fast wander through the fine converter alone, over as many steps, does not."""
+    levels, even at a step 4 % off; a fast wander through the fine converter alone, over
+    as many steps, does not."""
     rng = np.random.default_rng(seed)
     step = 1.0e-8
-    spread, z = readings_phase(reading(rng, step, analog_counts=0.3), step)
-    assert spread > LATTICE_SPREAD_STEPS and z > 100 * LATTICE_READINGS_Z
-    wander = LSB_M * np.round(np.cumsum(rng.normal(0.0, step, 20_000)) / LSB_M)
-    spread, z = readings_phase(wander, step)
-    assert spread > LATTICE_SPREAD_STEPS and z < LATTICE_READINGS_Z
+    x = np.cumsum(rng.normal(0.0, 0.5 * step, 20_000))  # a few steps in 64 readings
+    fine = LSB_M * np.round(x / LSB_M)
+    coarse = step * np.round(x / step) + rng.normal(0.0, 0.3 * LSB_M, len(x))
+    windows, z = readings_on_levels(LSB_M * np.round(coarse / LSB_M), 1.04 * step)
+    assert windows >= LEVEL_WINDOWS and z > 2 * LEVEL_Z
+    windows, z = readings_on_levels(fine, step)
+    assert windows >= LEVEL_WINDOWS and z < LEVEL_Z / 2
 
 
 def test_a_modulation_is_found_where_it_is_a_line_and_not_in_a_drift() -> None:

@@ -207,11 +207,9 @@ class Evidence:
         return lattice_deviance(self._spans(self.meas.y_m), self.pred.params.sensor.lsb_m,
                                 step_m, self._spans(self.pred.base.y_m))
 
-    def readings_on_lattice(self, step_m: float) -> list[tuple[float, float]]:
-        """Per block: how many steps of `step_m` the readings spread over (5th to 95th
-        percentile), and Rayleigh's statistic n |mean exp(2 pi i y / step)|^2 of their
-        phase on that lattice (about 1 where they fall anywhere, n where on its levels)."""
-        return [readings_phase(y, step_m) for y in self._spans(self.meas.y_m)]
+    def readings_on_lattice(self, step_m: float) -> list[tuple[int, float]]:
+        """`readings_on_levels` of each block."""
+        return [readings_on_levels(y, step_m) for y in self._spans(self.meas.y_m)]
 
     def line_deviance(self, fx: Effect, f0_hz: float, harmonics: int) -> float:
         """Evidence for `fx`'s lines (its first `harmonics` of `f0_hz`), not its waveform,
@@ -404,11 +402,26 @@ def find_lattice(spans: list[np.ndarray], lsb_m: float,
     return step, offset
 
 
-def readings_phase(y: np.ndarray, step_m: float) -> tuple[float, float]:
-    """(how many steps of `step_m` the readings `y` spread over, 5th to 95th percentile;
-    Rayleigh's statistic n |mean exp(2 pi i y / step)|^2 of their phase on that lattice)."""
-    spread = float(np.percentile(y, 95) - np.percentile(y, 5)) / step_m
-    return spread, len(y) * abs(np.mean(np.exp(2j * np.pi * y / step_m))) ** 2
+#: readings are looked at in windows of this many (a slow signal spans a few steps in one,
+#: so a step a few per cent off still lines them up), those that span two steps or more,
+#: and the step is scanned this far either way (a fit's step was 4 % off)
+LEVEL_WINDOW = 64
+LEVEL_SCAN = np.linspace(0.94, 1.06, 61)
+
+
+def readings_on_levels(y: np.ndarray, step_m: float) -> tuple[int, float]:
+    """(how many windows of LEVEL_WINDOW readings span two steps of `step_m` or more; the
+    mean over them of Rayleigh's statistic LEVEL_WINDOW |mean exp(2 pi i y / step)|^2,
+    the largest over steps within LEVEL_SCAN): about 1 where the readings fall anywhere,
+    up to LEVEL_WINDOW where they sit on a converter's levels."""
+    m = len(y) // LEVEL_WINDOW
+    win = y[:m * LEVEL_WINDOW].reshape(m, LEVEL_WINDOW)
+    win = win[np.ptp(win, axis=1) >= 2 * step_m]
+    if not len(win):
+        return 0, math.nan
+    z = max(float(np.mean(np.abs(np.mean(np.exp(2j * np.pi * win / (step_m * k)), axis=1))
+                          ** 2)) for k in LEVEL_SCAN)
+    return len(win), LEVEL_WINDOW * z
 
 
 def lattice_deviance(spans: list[np.ndarray], lsb_m: float, step_m: float,

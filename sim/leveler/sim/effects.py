@@ -63,7 +63,7 @@ class Evidence(Protocol):
     def block_gains(self, fx: Effect) -> list[float]: ...
     def lattice(self) -> tuple[float, float] | None: ...
     def lattice_deviance(self, step_m: float) -> float: ...
-    def readings_on_lattice(self, step_m: float) -> list[tuple[float, float]]: ...
+    def readings_on_lattice(self, step_m: float) -> list[tuple[int, float]]: ...
     def line_deviance(self, fx: Effect, f0_hz: float, harmonics: int) -> float: ...
     def modulation_hz(self) -> float | None: ...
     def modulation_span_s(self) -> float: ...
@@ -891,10 +891,11 @@ def _expected_excess(v: np.ndarray, s: float) -> np.ndarray:
     return e
 
 
-#: a block whose readings spread over this many converter steps shows its levels, and
-#: Rayleigh's statistic of the readings' phase on them beats this (chance odds e^-10)
-LATTICE_SPREAD_STEPS = 3.0
-LATTICE_READINGS_Z = 10.0
+#: a block with this many stretches of readings that cross two converter steps shows its
+#: levels there: their mean Rayleigh statistic beats this (about 1 where readings fall
+#: anywhere; `leveler.analysis.evidence.readings_on_levels`)
+LEVEL_WINDOWS = 20
+LEVEL_Z = 10.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -965,16 +966,18 @@ class AdcQuantization(Effect):
         return ev.lattice_deviance(self.step_m)
 
     def degenerate(self, ev: Evidence) -> str:
-        """Where the readings cross several of its steps, a converter's levels show in the
-        readings themselves, not only in their changes. A modulation's steps and the ringing
-        after them repeat with the same sizes every cycle, and the changes a model a little
-        wrong leaves unpredicted line up on some step: a modulated null log's "65 nm
-        converter" held out at 40, its readings spread evenly over its lattice (Rayleigh z
-        3 over 19 steps) where true converters' sit on theirs (z 81-693)."""
-        for spread, z in ev.readings_on_lattice(self.step_m):
-            if spread >= LATTICE_SPREAD_STEPS and z < LATTICE_READINGS_Z:
-                return (f"where the readings cross {spread:.0f} of its steps they do not sit "
-                        f"on its levels (Rayleigh z {z:.2g}): repeated steps, not a converter")
+        """Where the readings cross its steps, a converter's levels show in the readings
+        themselves, not only in their changes. A modulation's steps and the ringing after
+        them repeat with the same sizes every cycle, and the changes a model a little wrong
+        leaves unpredicted line up on some step: a modulated null log's "65 nm converter"
+        held out at 40, its readings in windows that cross two steps or more on its levels
+        no more than chance allows (Rayleigh's statistic 5.6 at best; 2.6 for another
+        null's 42 nm), where true converters' sit on theirs (14-41)."""
+        for windows, z in ev.readings_on_lattice(self.step_m):
+            if windows >= LEVEL_WINDOWS and z < LEVEL_Z:
+                return (f"in {windows} stretches where the readings cross its steps they do "
+                        f"not sit on its levels (Rayleigh's statistic {z:.2g}): repeated "
+                        "steps, not a converter")
         return Effect.degenerate(self, ev)
 
     @classmethod
