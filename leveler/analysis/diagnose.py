@@ -471,7 +471,6 @@ def diagnose(meas: Measured, max_effects: int = 4,
                      normalised_gap(w_te, meas.y_m - nominal.base.y_m, meas.y_m - pred.base.y_m))
 
 
-
 def _confirm(r: _Round, f: Fit, check: Fit, nuisance: Nuisance, parts: list[slice],
              whole: slice, act_excited: bool
              ) -> tuple[tuple[Predictor, Recalibration | None, Nuisance], Effect,

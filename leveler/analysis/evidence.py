@@ -207,8 +207,8 @@ class Evidence:
         return lattice_deviance(self._spans(self.meas.y_m), self.pred.params.sensor.lsb_m,
                                 step_m, self._spans(self.pred.base.y_m))
 
-    def readings_on_lattice(self, step_m: float) -> list[tuple[int, float]]:
-        """`readings_on_levels` of each block."""
+    def readings_on_levels(self, step_m: float) -> list[tuple[int, float]]:
+        """`readings_on_levels` (the function) of each block."""
         return [readings_on_levels(y, step_m) for y in self._spans(self.meas.y_m)]
 
     def line_deviance(self, fx: Effect, f0_hz: float, harmonics: int) -> float:
