@@ -1,6 +1,6 @@
 """`leveler diagnose` on logs it did not make: the independent generator (bench/independent,
 written from the physics alone, with calibration offsets within 1-2 sigma, noise levels
-off by 10-25 % and a start out of equilibrium in every log). Tuning seeds (101, 102) only: the
+off by 10-25 % and a start out of equilibrium in every log). Tuning seeds (101-108) only: the
 untouched seeds are for `make bench-diagnose --untouched`. The full scoreboard is
 bench/diagnose_score.py; these are the cases a change of this code must keep."""
 
