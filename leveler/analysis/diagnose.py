@@ -44,6 +44,7 @@ import numpy as np
 from scipy.optimize import least_squares, minimize_scalar
 from scipy.signal import freqz
 
+from leveler.analysis.bandgate import band_changes, bin_power, worse_band
 from leveler.analysis.bump import Bump, Spectra, mode_psd
 from leveler.analysis.evidence import Evidence
 from leveler.analysis.leftover import Leftover, leftover
@@ -52,6 +53,7 @@ from leveler.analysis.nuisance import (
     Projection,
     part_gains,
     predictive_cost,
+    predictive_residual,
     with_shapes,
     with_states,
 )
@@ -113,7 +115,9 @@ class Candidate:
     sigma: dict[str, float] = field(default_factory=dict)
     round: int = 0
     threshold: float = math.nan  # held-out evidence to beat (default: the penalty)
-    size_ok: bool = False  # found in training, not degenerate, not stopped by the size gate
+    size_ok: bool = False  # found in training, not degenerate, no gate but the threshold stops it
+    # per band on the held-out part: normalised power before, after, change in std errors
+    bands: dict[str, tuple[float, float, float]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if math.isnan(self.threshold):
@@ -713,6 +717,8 @@ def _family(cls: type[Effect], r: _Round) -> tuple[list[Candidate], list[tuple[F
     tried: list[Candidate] = []
     passed: list[tuple[Fit, Candidate]] = []
     fits = []
+    # the held-out whitened residual without a candidate, for `bandgate`
+    e0 = predictive_residual(n_train, n_test, white0_train, white0_test)
     for guess in cls.guesses(ev):
         f = fit_effect(guess, pred, w_train, meas, n_train)
         fits.append(f)
@@ -779,6 +785,12 @@ def _family(cls: type[Effect], r: _Round) -> tuple[list[Candidate], list[tuple[F
         change = pred.physical_change(f.effect)
         size = max(float(np.std(change[span])) for span in w_test.spans)
         if size > share * noise:
+            e = predictive_residual(n_cand_train, n_cand, white_train, white_test)
+            cand.bands = band_changes(w_test.f_hz, bin_power(w_test, e0), bin_power(w_test, e),
+                                      bin_power(w_test, e0 - e), BANDS_HZ)
+            if why := worse_band(cand.bands):
+                cand.note = f"rejected: it {why}"
+                continue
             cand.size_ok = True
             if cand.deviance_test > cand.threshold:
                 passed.append((f, cand))

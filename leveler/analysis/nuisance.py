@@ -133,6 +133,17 @@ def predictive_cost(train: Projection, test: Projection, white_train: np.ndarray
             - train.cost(white_train))
 
 
+def predictive_residual(train: Projection, test: Projection, white_train: np.ndarray,
+                        white_test: np.ndarray) -> np.ndarray:
+    """The held-out part's whitened residual with the knobs solved as `predictive_cost`
+    solves them (on both parts at once)."""
+    if train.k == 0:
+        return white_test
+    joint = Projection(np.vstack([train.g, test.g]), train.p, train.q, train.free)
+    n = len(white_train)
+    return joint._solve_d(np.concatenate([white_train, white_test]))[n:n + len(white_test)]
+
+
 class Projection:
     """The nuisance columns whitened on one span: residuals with the knobs solved out."""
 
