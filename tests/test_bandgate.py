@@ -50,7 +50,6 @@ def test_a_line_the_data_do_not_have_makes_its_band_worse() -> None:
     rng = np.random.default_rng(4)
     noise = rng.standard_normal(N)
     w = _blocks(noise)
-    before = bin_power(w, w.whiten(noise))
     wrong = noise - _sine(0.05, 0.3)  # a candidate's 50 mHz line, absent from the data
     changes = _changes(w, noise, wrong)
     assert "10-100 mHz" in worse_band(changes)
