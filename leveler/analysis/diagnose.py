@@ -44,7 +44,7 @@ import numpy as np
 from scipy.optimize import least_squares, minimize_scalar
 from scipy.signal import freqz
 
-from leveler.analysis.bandgate import band_changes, bin_power, worse_band
+from leveler.analysis.bandgate import BandChange, band_changes, bin_power, worse_band
 from leveler.analysis.bump import Bump, Spectra, mode_psd
 from leveler.analysis.evidence import Evidence
 from leveler.analysis.leftover import Leftover, leftover
@@ -92,6 +92,8 @@ BANDS_HZ: dict[str, tuple[float, float]] = {
     "0.1-1 Hz": (1e-1, 1.0),
     "1 Hz-Nyquist": (1.0, math.inf),
 }
+#: the band gate's bands (`bandgate`): every bin counts, a day's lowest too
+GATE_BANDS_HZ = {"under 0.1 mHz": (0.0, 1e-4), **BANDS_HZ}
 
 
 @dataclass
@@ -116,8 +118,7 @@ class Candidate:
     round: int = 0
     threshold: float = math.nan  # held-out evidence to beat (default: the penalty)
     size_ok: bool = False  # found in training, not degenerate, no gate but the threshold stops it
-    # per band on the held-out part: normalised power before, after, change in std errors
-    bands: dict[str, tuple[float, float, float]] = field(default_factory=dict)
+    bands: dict[str, BandChange] = field(default_factory=dict)  # held out (`bandgate`)
 
     def __post_init__(self) -> None:
         if math.isnan(self.threshold):
@@ -787,7 +788,7 @@ def _family(cls: type[Effect], r: _Round) -> tuple[list[Candidate], list[tuple[F
         if size > share * noise:
             e = predictive_residual(n_cand_train, n_cand, white_train, white_test)
             cand.bands = band_changes(w_test.f_hz, bin_power(w_test, e0), bin_power(w_test, e),
-                                      bin_power(w_test, e0 - e), BANDS_HZ)
+                                      bin_power(w_test, e0 - e), GATE_BANDS_HZ)
             if why := worse_band(cand.bands):
                 cand.note = f"rejected: it {why}"
                 continue

@@ -164,8 +164,7 @@ def result_json(d: Diagnosis, meas: Measured, model_out: str | None,
                         "deviance_held_out": c.deviance_test, "penalty": c.penalty,
                         "threshold": c.threshold if math.isfinite(c.threshold) else None,
                         "accepted": c.accepted, "note": c.note,
-                        "bands_held_out": {b: {"before": v[0], "after": v[1],
-                                               "change_sigma": v[2]}
+                        "bands_held_out": {b: dataclasses.asdict(v)
                                            for b, v in c.bands.items()} or None}
                        for c in d.candidates],
         "wall_s": d.wall_s,
