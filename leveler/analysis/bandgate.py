@@ -85,7 +85,8 @@ def worse_band(changes: dict[str, BandChange]) -> str:
     """Why the candidate fails the gate ("" if it passes): the band it makes worse."""
     explained = sum(max(c.gain, 0.0) for c in changes.values())
     for name, c in changes.items():
-        if (c.judged and c.rise_sigma > WORSE_SIGMA and c.after > (1 + WORSE_REL) * max(c.before, 1.0)
+        if (c.judged and c.rise_sigma > WORSE_SIGMA
+                and c.after > (1 + WORSE_REL) * max(c.before, 1.0)
                 and -c.gain > WORSE_SHARE * explained):
             return (f"makes the {name} band worse on the held-out part: residual power "
                     f"{c.before:.3g} -> {c.after:.3g} of the noise ({c.rise_sigma:.1f} "
