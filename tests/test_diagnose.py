@@ -238,6 +238,10 @@ def test_cli_json_contract_report_and_fitted_model(tmp_path: Path,
     lifted = {b: v for b, v in out["gap_normalised"].items() if v and v["before"] > 10}
     assert "1-10 mHz" in lifted and lifted["1-10 mHz"]["before"] > 1e4
     assert all(0.7 < v["after"] < 1.5 for v in lifted.values()), lifted
+    # The band gate's figures for the fit taken: its band's power gone, no band worse.
+    bands = next(c for c in out["candidates"] if c["accepted"])["bands_held_out"]
+    assert bands["1-10 mHz"]["before"] > 100 * bands["1-10 mHz"]["after"]
+    assert all(b["after"] < 1.1 * max(b["before"], 1.0) for b in bands.values()), bands
     assert out["model_out"] == str(tmp_path / "night.fitted.toml")
     for name in ("summary.md", "residual_asd.png", "timeseries.png"):
         assert (tmp_path / "rep" / name).stat().st_size > 1000

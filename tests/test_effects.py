@@ -40,6 +40,7 @@ SAMPLES: list[Effect] = [
     TemperatureCoupling(tilt_per_kelvin_rad_per_k=5e-6, lag_s=300.0),
     ActuatorDelay(delay_s=0.37),
     ActuatorHysteresis(width_v=0.8, fraction=0.3),
+    ActuatorHysteresis(width_v=0.3, fraction=0.2, width2_v=1.5, weight2=0.6),  # two plays
     ExtraResonance(frequency_hz=1.3, q=15.0, gain=0.3),
     SensorGainError(gain_error=-0.07),
     SensorDrift(rate_m_per_s=3e-12),
@@ -48,7 +49,7 @@ SAMPLES: list[Effect] = [
 
 
 def test_every_effect_has_a_sample_here() -> None:
-    assert sorted(fx.name for fx in SAMPLES) == sorted(EFFECTS)
+    assert sorted({fx.name for fx in SAMPLES}) == sorted(EFFECTS)
 
 
 def _with(cfg: Config, fx: Effect | None) -> Config:

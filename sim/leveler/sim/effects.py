@@ -546,17 +546,22 @@ def turns(played: np.ndarray) -> int:
 GAIN_LIKE = 0.9
 #: a hysteresis shows its loop in at least this many turns of its play (two loops)
 MIN_TURNS = 4
+#: a second play weighs at most this many times the first
+MAX_WEIGHT2 = 20.0
 
 
 @dataclass(frozen=True, slots=True)
 class ActuatorHysteresis(Effect):
-    """Piezo hysteresis as a Prandtl-Ishlinskii model with one play operator:
-    stroke ~ (1 - fraction) u + fraction * play(u, width_v)."""
+    """Piezo hysteresis as a Prandtl-Ishlinskii model of one or two play operators:
+    stroke ~ u + fraction * ((play(u, width_v) - u) + weight2 * (play(u, width2_v) - u)).
+
+    A second play (`width2_v` > 0, its weight relative to the first's, so the loop stays
+    linear in `fraction`) holds a loop that a single one cannot: a saturating, Bouc-Wen-like
+    loop is steep at each turn and flattens, a sum of plays of widths spread apart."""
 
     name: ClassVar[str] = "actuator_hysteresis"
     stage: ClassVar[Stage] = "actuator"
     title: ClassVar[str] = "actuator hysteresis"
-    free: ClassVar[tuple[str, ...]] = ("width_v", "fraction")
     magnitude: ClassVar[str] = "fraction"
     needs_excitation: ClassVar[bool] = True
     # Under a square modulation a piezo's hysteresis is a smaller gain than the closed
@@ -570,32 +575,66 @@ class ActuatorHysteresis(Effect):
     model: Literal["prandtl_ishlinskii"] = "prandtl_ishlinskii"
     width_v: float = positive(1.0)
     fraction: float = field(default=0.0, metadata={"ge": -1.0, "le": 1.0})
+    width2_v: float = non_negative(0.0)
+    weight2: float = field(default=0.0, metadata={"ge": 0.0, "le": MAX_WEIGHT2})
+
+    @property
+    def free(self) -> tuple[str, ...]:  # type: ignore[override]
+        one = ("width_v", "fraction")
+        return (*one, "width2_v", "weight2") if self.width2_v > 0 else one
+
+    def _plays(self) -> list[tuple[float, float]]:
+        """(width, weight relative to the first) of each play."""
+        plays = [(self.width_v, 1.0)]
+        return [*plays, (self.width2_v, self.weight2)] if self.width2_v > 0 else plays
+
+    def added(self, x: np.ndarray) -> np.ndarray:
+        """What the plays add to the stroke per unit `fraction`."""
+        return sum((k * (play(x, w) - x) for w, k in self._plays()), np.zeros_like(x))
 
     def apply(self, x: np.ndarray, sig: Signals) -> np.ndarray:
-        return x + self.fraction * (play(x, self.width_v) - x)
+        return x + self.fraction * self.added(x)
 
     def stepper(self, dt_s: float) -> Callable[[float, float], float]:
-        state: list[float] = []
-        w, a = self.width_v, self.fraction
+        plays, state = self._plays(), []
+        a = self.fraction
 
         def step(v: float, t_s: float) -> float:
             if not state:
-                state.append(v)
-            p = state[0]
-            if v - p > w:
-                p = v - w
-            elif p - v > w:
-                p = v + w
-            state[0] = p
-            return v + a * (p - v)
+                state.extend(v for _ in plays)
+            out = v
+            for i, (w, k) in enumerate(plays):
+                p = min(max(state[i], v - w), v + w)
+                state[i] = p
+                out += a * k * (p - v)
+            return out
 
         return step
 
     def scale(self, key: str) -> float:
-        return max(self.width_v, 1e-3) / 4 if key == "width_v" else 0.05
+        if key in ("width_v", "width2_v"):
+            return max(getattr(self, key), 1e-3) / 4
+        return 0.25 if key == "weight2" else 0.05
 
     def bounds(self, key: str) -> tuple[float, float]:
-        return (1e-4, 1e3) if key == "width_v" else (-1.0, 1.0)
+        if key in ("width_v", "width2_v"):
+            return (1e-4, 1e3)
+        return (0.0, MAX_WEIGHT2) if key == "weight2" else (-1.0, 1.0)
+
+    def canonical(self) -> Effect:
+        """The narrower play first (its weight then the other's relative to it)."""
+        if 0 < self.width2_v < self.width_v and self.weight2 > 0:
+            return self.replace(width_v=self.width2_v, width2_v=self.width_v,
+                                fraction=self.fraction * self.weight2,
+                                weight2=1.0 / self.weight2)
+        return self
+
+    def variants(self) -> list[Effect]:
+        """From one play, two: a second play four times wider or narrower, at half its
+        weight to start."""
+        if self.width2_v > 0:
+            return []
+        return [self.replace(width2_v=self.width_v * k, weight2=0.5) for k in (4.0, 0.25)]
 
     def degenerate(self, ev: Evidence) -> str:
         """A play wider than the command's reversals never turns: a gain or a lag, not a
@@ -610,17 +649,18 @@ class ActuatorHysteresis(Effect):
         loop starting out of equilibrium, had a 2.25 V play that never turned in 3 h (a
         ramp through its dead band, then a constant) named for that start's transient."""
         spread = ev.command_spread_v()
-        if self.width_v >= spread:
-            return (f"play width {self.width_v:.3g} V is not below the command's spread "
-                    f"({spread:.3g} V): a gain or a lag, not hysteresis")
-        blocks = [(u, play(u, self.width_v)) for u in ev.command_blocks_v()]
-        turned = sum(turns(p) for _, p in blocks)
-        if turned < MIN_TURNS:
-            return (f"a play of {self.width_v:.3g} V turns {turned} times in the log (a loop "
-                    f"needs {MIN_TURNS}): a ramp and a step, not hysteresis")
+        commands = ev.command_blocks_v()
+        for w, _ in self._plays():
+            if w >= spread:
+                return (f"play width {w:.3g} V is not below the command's spread "
+                        f"({spread:.3g} V): a gain or a lag, not hysteresis")
+            turned = sum(turns(play(u, w)) for u in commands)
+            if turned < MIN_TURNS:
+                return (f"a play of {w:.3g} V turns {turned} times in the log (a loop "
+                        f"needs {MIN_TURNS}): a ramp and a step, not hysteresis")
         shares = []
-        for u, p in blocks:
-            added = p - u
+        for u in commands:
+            added = self.added(u)
             a = np.column_stack([u, np.ones_like(u)])
             coef, *_ = np.linalg.lstsq(a, added, rcond=None)
             var = float(np.var(added))
@@ -634,8 +674,11 @@ class ActuatorHysteresis(Effect):
         return Effect.degenerate(self, ev)
 
     def describe(self) -> str:
-        return (f"actuator hysteresis (Prandtl-Ishlinskii), {abs(self.fraction) * 100:.3g}% "
-                f"of the stroke lags by up to {self.width_v:.3g} V")
+        lags = f"{abs(self.fraction) * 100:.3g}% of the stroke lags by up to {self.width_v:.3g} V"
+        if self.width2_v > 0:
+            lags += (f" and {abs(self.fraction * self.weight2) * 100:.3g}% by up to "
+                     f"{self.width2_v:.3g} V")
+        return f"actuator hysteresis (Prandtl-Ishlinskii), {lags}"
 
     def band_hz(self) -> tuple[float, float]:
         return (1e-2, 1e-1)
