@@ -215,3 +215,17 @@ def test_the_expected_reading_of_a_noisy_quantizer_is_its_mean_rounding(noise_st
     np.testing.assert_allclose(_expected_excess(v, noise_steps), quad, atol=2e-4)
     if noise_steps >= 1:
         np.testing.assert_allclose(_expected_excess(v, noise_steps), v, atol=1e-8)
+
+
+def test_two_plays_report_the_narrower_first_and_stroke_the_same() -> None:
+    """A second play narrower than the first is reported first, its weight and the
+    other's turned round, and the stroke does not change."""
+    u = 3.0 * np.sin(np.linspace(0.0, 40.0, 4000)) * np.linspace(0.2, 1.0, 4000)
+    fx = ActuatorHysteresis(width_v=1.2, fraction=0.1, width2_v=0.3, weight2=2.0)
+    c = fx.canonical()
+    assert (c.width_v, c.width2_v) == (0.3, 1.2)  # type: ignore[attr-defined]
+    assert c.fraction == pytest.approx(0.2) and c.weight2 == pytest.approx(0.5)  # type: ignore[attr-defined]
+    sig = Signals(np.arange(len(u)) * 0.1, 0.1, None)
+    np.testing.assert_allclose(c.apply(u, sig), fx.apply(u, sig), atol=1e-12)
+    assert c.free == ("width_v", "fraction", "width2_v", "weight2")
+    assert "20% of the stroke lags by up to 0.3 V and 10% by up to 1.2 V" in c.describe()
