@@ -12,9 +12,9 @@ when the rise is beyond the noise (WORSE_SIGMA), beyond the noise level itself o
 there (WORSE_REL: a band the noise spectrum over-fitted, at 0.5, that comes back to 1 is
 not worse), and a real share of what the candidate explains elsewhere (WORSE_SHARE).
 On the independent generator's tuning logs (seeds 9003-9005), the rule without that share
-stopped a strong Bouc-Wen loop's play that gave back 57 % of its gain in 10-100 mHz, and
-also a medium one's that gave back 2 %, and a strong temperature coupling that gave back
-5 % in 1-10 mHz: right names, in forms a little off.
+stopped a strong Bouc-Wen loop's single play, which gives back 65 % of its held-out gain in
+10-100 mHz, and also a medium one's that gave back about 2 % there and a strong
+temperature coupling about 5 % in 1-10 mHz: right names, in forms a little off.
 """
 
 from __future__ import annotations
