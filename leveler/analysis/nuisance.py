@@ -116,6 +116,11 @@ def part_gains(pred: Predictor, parts: list[slice]) -> list[np.ndarray]:
     return _scaled(pred, shapes)
 
 
+def _joint(train: Projection, test: Projection, keep: Any = slice(None)) -> Projection:
+    """The knobs of both parts at once (the held-out rows `keep` of them)."""
+    return Projection(np.vstack([train.g, test.g[keep]]), train.p, train.q, train.free)
+
+
 def predictive_cost(train: Projection, test: Projection, white_train: np.ndarray,
                     white_test: np.ndarray, keep: Any = slice(None)) -> float:
     """The held-out part's cost given the training part: the knobs solved on both at once,
@@ -128,8 +133,7 @@ def predictive_cost(train: Projection, test: Projection, white_train: np.ndarray
     if train.k == 0:
         wt = white_test[keep]
         return float(wt @ wt)
-    joint = Projection(np.vstack([train.g, test.g[keep]]), train.p, train.q, train.free)
-    return (joint.cost(np.concatenate([white_train, white_test[keep]]))
+    return (_joint(train, test, keep).cost(np.concatenate([white_train, white_test[keep]]))
             - train.cost(white_train))
 
 
@@ -139,9 +143,9 @@ def predictive_residual(train: Projection, test: Projection, white_train: np.nda
     solves them (on both parts at once)."""
     if train.k == 0:
         return white_test
-    joint = Projection(np.vstack([train.g, test.g]), train.p, train.q, train.free)
     n = len(white_train)
-    return joint._solve_d(np.concatenate([white_train, white_test]))[n:n + len(white_test)]
+    e = _joint(train, test)._solve_d(np.concatenate([white_train, white_test]))
+    return e[n:n + len(white_test)]
 
 
 class Projection:
