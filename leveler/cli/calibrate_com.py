@@ -1,4 +1,5 @@
-"""`leveler calibrate-com`: the paper's dual-frequency centre-of-mass calibration (Fig. 11)."""
+"""`leveler calibrate-com`: a centre of mass from a recording (`calibrate_com_log`), or the
+paper's dual-frequency calibration on the simulated torsion pendulum (Fig. 11)."""
 
 from __future__ import annotations
 
@@ -13,16 +14,34 @@ if TYPE_CHECKING:
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     p = sub.add_parser(
-        "calibrate-com", help="centre-of-mass offset from tilt and force modulated at two "
-        "frequencies (paper Fig. 11)",
-        description="On the simulated pendulum, modulate the base pitch at f1 and apply a "
-        "calibration force at f2 together; the displacement ASD has a line at each. Their "
-        "amplitude ratio, scaled by the known force, arm and mass (and the pendulum's response "
-        "ratio |H(f2)/H(f1)|), gives the centre-of-mass offset l_cm = (A1/A2) F L / (M g "
-        "sin(tilt)) |H(f2)/H(f1)|, and the counterweight position l_cm2 = l_cm (m1 + m2) / m2. "
-        "Runs once per counterweight position and prints true against recovered.",
-        epilog="Example: leveler calibrate-com --plot fig11.png. Units are SI; the table "
-        "shows mm, um and um/rtHz.")
+        "calibrate-com", help="centre-of-mass offset: from a recorded drive of the table (LOG), "
+        "or the paper's dual-frequency method on the simulated torsion pendulum (Fig. 11)",
+        description="With LOG: find the drive lines in a recording (a stepped sine sweep or "
+        "square modulation of the piezo, where the loop was open), estimate the transfer "
+        "function from command to reading at each with its uncertainty (the slow drift fitted "
+        "out, the noise from the residual's own spectrum), and fit the pendulum tiltmeter's "
+        "response A (w^2 + g) / (w0^2 - w^2 + i w w0 / Q): its signed centre-of-mass distance "
+        "L = g J / (m g) (a hanging pendulum's zero is at sqrt(m g d / J)), resonance, Q and "
+        "scale, with 1-sigma uncertainties. The mass, inertia and stated scale come from the "
+        "log's config or --model; an imported log carries none, so give --model. "
+        "Without LOG: on the simulated torsion pendulum, modulate the base pitch at f1 and "
+        "apply a calibration force at f2 together; the displacement ASD has a line at each. "
+        "Their amplitude ratio, scaled by the known force, arm and mass (and the pendulum's "
+        "response ratio |H(f2)/H(f1)|), gives the centre-of-mass offset l_cm = (A1/A2) F L / "
+        "(M g sin(tilt)) |H(f2)/H(f1)|, and the counterweight position l_cm2 = l_cm (m1 + m2) / "
+        "m2. Runs once per counterweight position and prints true against recovered.",
+        epilog="Examples: leveler calibrate-com run7.mcap --model tiltmeter.toml --plot "
+        "bode.png; leveler calibrate-com --plot fig11.png. Units are SI; the tables show mHz, "
+        "nm/V, um, mm and um/rtHz.")
+    p.add_argument("log", nargs="?", default=None,
+                   help="a recording (leveler's log, or `leveler import-csv`'s) with a drive "
+                   "of the table; without it, the simulated dual-frequency method runs")
+    p.add_argument("--model", default=None, metavar="CONFIG",
+                   help="with LOG: config whose [plant] gives the pendulum's mass, inertia and "
+                   "the stated scale (default: the config stored in the log)")
+    p.add_argument("--settle-fraction", type=float, default=0.25,
+                   help="with LOG: fraction of each drive step left out for the pendulum to "
+                   "ring down (default: %(default)g)")
     p.add_argument("--counterweight-offsets-m", type=float, nargs="+",
                    default=[1e-3, 2e-3, 3e-3, 4e-3, 5e-3], metavar="L",
                    help="counterweight distances from the axis [m] (default: 1..5 mm, the "
@@ -101,6 +120,14 @@ def plot(results: list[ComResult], fs_hz: float, path: str, drive: dict) -> None
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.log is not None:
+        from leveler.cli.calibrate_com_log import run as run_log
+
+        if not 0 <= args.settle_fraction < 1:
+            print("leveler calibrate-com: error: --settle-fraction must be in [0, 1)",
+                  file=sys.stderr)
+            return 2
+        return run_log(args)
     from leveler.procedures.calibrate_com import calibrate_offsets
     from leveler.sim.torsion import (
         DEFAULT_BALANCED_MASS_KG,

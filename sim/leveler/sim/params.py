@@ -170,6 +170,10 @@ class UncertaintyParams:
     q_rel: float = non_negative(0.0)
     thermal_tilt_rel: float = non_negative(0.0)
     cooler_amplitude_rel: float = non_negative(0.0)
+    # the pendulum's mass and moment of inertia: they turn a response's zero into a
+    # centre-of-mass distance (`leveler calibrate-com LOG`)
+    mass_rel: float = non_negative(0.0)
+    inertia_rel: float = non_negative(0.0)
     # of the stated noise levels' amplitudes; 0: not vouched for, so diagnose fits the
     # residual's noise freely even where it can only extrapolate (`leveler.analysis.told`)
     noise_rel: float = non_negative(0.0)

@@ -1,0 +1,159 @@
+"""`leveler calibrate-com LOG`: a pendulum's centre of mass from a recorded drive of its table.
+
+The recordings here come from leveler's own pendulum stepper (exact for the linear equation
+with the platform's rotation) under a stepped sweep, with a random-walk drift far larger than
+the drive's response and white noise; tests/test_tiltmeter_example.py runs the same command on
+a recording from the independent generator.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from leveler.cli.main import main
+from leveler.procedures.drive_lines import drive_lines
+from leveler.procedures.pendulum_fit import fit_pendulum
+from leveler.sim.params import PendulumParams, PlantParams
+from leveler.sim.pendulum import PendulumModel
+
+DT = 0.5
+HANGING = PendulumParams(mass_kg=1.0, com_length_m=-2e-5, flexure_stiffness_nm_per_rad=4e-4,
+                         inertia_kgm2=0.05, damping_nms_per_rad=2e-4, sensor_arm_m=0.1)
+TILT_PER_V = PlantParams().piezo.gain_m_per_v / PlantParams().platform.support_spacing_m
+
+
+def sweep(pe: PendulumParams, freqs: np.ndarray, waveform: str, seed: int,
+          amplitude_v: float = 20.0, dt: float = DT,
+          min_step_s: float = 2400.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(t, command, reading) of a stepped sweep with pauses, drift and noise."""
+    rng = np.random.default_rng(seed)
+    parts = []
+    for f in freqs:
+        t = np.arange(int(max(15 / f, min_step_s) / dt)) * dt
+        wave = np.sin(2 * np.pi * f * t + rng.uniform(0, 2 * np.pi))
+        parts += [50 + amplitude_v * (np.sign(wave) if waveform == "square" else wave),
+                  np.full(int(rng.uniform(60, 300) / dt), 50.0)]
+    u = np.concatenate(parts)
+    model = PendulumModel(pe, dt)
+    model.settle(pe, 0.0)
+    model.omega = 1e-7  # out of equilibrium: it rings from the start
+    y = np.array([model.step(TILT_PER_V * v) for v in u]) * pe.sensor_arm_m
+    t = np.arange(len(u)) * dt
+    y += np.cumsum(rng.normal(0, 3e-10, len(u))) + 2e-11 * t + rng.normal(0, 2e-10, len(u))
+    return t, u, y
+
+
+def recording(tmp_path: Path, capsys: pytest.CaptureFixture[str], pe: PendulumParams,
+              waveform: str = "sine", seed: int = 1) -> tuple[Path, Path]:
+    """The sweep as a CSV imported into a log, and a config stating the stand."""
+    fz = math.sqrt(abs(pe.gravity_stiffness_nm_per_rad) / pe.inertia_kgm2) / math.tau
+    t, u, y = sweep(pe, np.geomspace(fz / 4, fz * 4, 10), waveform, seed)
+    csv = tmp_path / "rec.csv"
+    csv.write_text("t_s,actuator_V,sensor_m\n" + "\n".join(
+        f"{a!r},{b!r},{c!r}" for a, b, c in zip(t.tolist(), u.tolist(), y.tolist(), strict=True))
+        + "\n")
+    log = tmp_path / "rec.mcap"
+    assert main(["import-csv", str(csv), "--out", str(log)]) == 0
+    capsys.readouterr()
+    cfg = tmp_path / "stand.toml"
+    cfg.write_text(
+        "[plant.pendulum]\n"
+        f"mass_kg = {pe.mass_kg!r}\ncom_length_m = -1e-6\n"  # the lab's guess: what is sought
+        f"flexure_stiffness_nm_per_rad = {pe.flexure_stiffness_nm_per_rad!r}\n"
+        f"inertia_kgm2 = {pe.inertia_kgm2!r}\n"
+        f"damping_nms_per_rad = {pe.damping_nms_per_rad!r}\n"
+        f"sensor_arm_m = {pe.sensor_arm_m!r}\n"
+        "[plant.uncertainty]\nmass_rel = 0.005\ninertia_rel = 0.03\nsensor_arm_rel = 0.02\n"
+        "piezo_gain_rel = 0.03\nsupport_spacing_rel = 0.01\n")
+    return log, cfg
+
+
+def calibrate(capsys: pytest.CaptureFixture[str], *args: str | Path) -> dict:
+    assert main(["calibrate-com", *map(str, args), "--json"]) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+@pytest.mark.parametrize("waveform", ["sine", "square"])
+def test_hanging_centre_of_mass_from_its_zero(tmp_path: Path, waveform: str,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    log, cfg = recording(tmp_path, capsys, HANGING, waveform)
+    r = calibrate(capsys, log, "--model", cfg, "--plot", tmp_path / "bode.png")
+    assert r["kind"] == "hanging"
+    err = r["com_length_m"] - HANGING.com_length_m
+    assert abs(err) < 0.05 * abs(HANGING.com_length_m)
+    assert abs(err) < 3 * r["com_length_sigma_m"]  # an honest uncertainty covers it
+    # the uncertainty is the stated inertia's and mass's (3 %, 0.5 %) and the fit's, no more
+    assert r["com_length_sigma_m"] < 0.05 * abs(HANGING.com_length_m)
+    assert r["zero_frequency_hz"] == pytest.approx(HANGING.zero_frequency_hz, rel=0.02)
+    assert r["natural_frequency_hz"] == pytest.approx(HANGING.natural_frequency_hz, rel=0.03)
+    assert r["scale_m_per_v"] == pytest.approx(HANGING.sensor_arm_m * TILT_PER_V, rel=0.02)
+    fundamentals = [x for x in r["lines"] if x["harmonic"] == 1]
+    assert len(fundamentals) == 10
+    assert {x["waveform"] for x in fundamentals} == {waveform}
+    if waveform == "square":  # the third harmonics are lines of their own, named so
+        assert sum(x["harmonic"] == 3 for x in r["lines"]) >= 5
+    assert (tmp_path / "bode.png").stat().st_size > 10_000
+    assert main(["calibrate-com", str(log), "--model", str(cfg)]) == 0
+    text = capsys.readouterr().out
+    assert "centre of mass: L = -20" in text and "um below the pivot" in text
+    assert "zero of the response" in text and "[nm/V]" in text
+
+
+def test_inverted_pendulum_has_no_zero_and_its_distance_from_the_levels(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The default stand's inverted pendulum (N = 9) swept across its 0.71 Hz resonance at
+    50 Hz: no zero, and the distance from the static level against the inertial limit.
+    (Sampled at 10 Hz, a sweep to 3 Hz is a third of the sample rate, where a held command's
+    steps are no longer the continuous drive the fitted response assumes.)"""
+    pe = PlantParams().pendulum
+    t, u, y = sweep(pe, np.geomspace(0.1, 3.0, 8), "sine", seed=3, amplitude_v=2.0, dt=0.02,
+                    min_step_s=120.0)
+    fit = fit_pendulum(drive_lines(t, u, y), PlantParams(), 0.02)
+    assert fit.kind == "inverted"
+    assert fit.com_length_m == pytest.approx(pe.com_length_m, rel=0.05)
+    assert abs(fit.com_length_m - pe.com_length_m) < 3 * fit.com_length_sigma_m
+    assert fit.amplification == pytest.approx(pe.amplification, rel=0.05)
+    assert math.isnan(fit.zero_frequency_hz)
+
+
+def test_no_drive_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    rng = np.random.default_rng(0)
+    csv, log = tmp_path / "quiet.csv", tmp_path / "quiet.mcap"
+    csv.write_text("t_s,actuator_V,sensor_m\n" + "\n".join(
+        f"{i * DT!r},{50 + float(rng.normal(0, 0.01))!r},{float(rng.normal(0, 1e-9))!r}"
+        for i in range(4000)) + "\n")
+    assert main(["import-csv", str(csv), "--out", str(log)]) == 0
+    capsys.readouterr()
+    assert main(["calibrate-com", str(log)]) == 2
+    err = capsys.readouterr().err
+    assert "0 drive lines found" in err and "at least 4 frequencies" in err
+
+
+def test_a_closed_loop_log_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """leveler's own closed-loop log: the command answers the reading, it drives nothing."""
+    log = tmp_path / "closed.mcap"
+    assert main(["sim", "--duration", "200", "--out", str(log), "--seed", "1"]) == 0
+    capsys.readouterr()
+    assert main(["calibrate-com", str(log)]) == 2
+    err = capsys.readouterr().err
+    assert "0 drive lines found in the" in err and "s where the loop was open" in err
+
+
+def test_a_line_found_only_where_the_loop_was_open() -> None:
+    """A drive in the closed part is the controller's, not the lab's: left out."""
+    t = np.arange(40_000) * DT
+    u = 50 + 5 * np.sin(2 * np.pi * 0.01 * t) + 3 * np.sin(2 * np.pi * 0.0237 * t)
+    open_ = t < t[-1] / 2
+    u[~open_] = 50 + 3 * np.sin(2 * np.pi * 0.0237 * t[~open_])
+    y = 1e-9 * u + np.random.default_rng(0).normal(0, 1e-12, len(t))
+    lines = drive_lines(t, u, y, usable=open_)
+    assert sorted(round(x.frequency_hz, 4) for x in lines) == [0.01, 0.0237]
+    assert all(x.end_s < t[-1] / 2 + DT for x in lines)
+    for x in lines:  # a flat 1 nm/V response, read back exactly
+        assert abs(x.transfer_m_per_v - 1e-9) < 3 * x.transfer_sigma_m_per_v + 1e-13
+
