@@ -24,7 +24,7 @@ from leveler.loop.pid import PID, ControllerConfig
 from leveler.settings import Config, load_config
 from leveler.sim.effects import Effect, EffectsParams, Signals
 from leveler.sim.params import PlantParams
-from leveler.sim.pendulum import discrete_matrices
+from leveler.sim.pendulum import discrete_matrices, linear_matrices
 from leveler.sim.plant import slew_lag_v
 from leveler.typed_config import ConfigError, build
 
@@ -241,7 +241,7 @@ class Predictor:
     an FFT, not a whole replay: that is what makes fitting a 24 h log take seconds.
     """
 
-    def __init__(self, params: PlantParams, meas: Measured) -> None:
+    def __init__(self, params: PlantParams, meas: Measured, ringing: bool = False) -> None:
         self.params = params
         self.meas = meas
         pe, pz = params.pendulum, params.piezo
@@ -254,6 +254,9 @@ class Predictor:
         self._amp = pe.amplification
         self.nominal_tilt = self._nominal_tilt()
         self._transient = self.thermal_transient()
+        # replay fits the pendulum's start; diagnose skips the first minutes instead (with the
+        # swing free in every fit, a tuning case's actuator delay was taken for hysteresis)
+        self._ringing = self.ringing() if ringing else []
         self.effects = params.effects
         self.base = self.predict(self.effects)
 
@@ -296,6 +299,21 @@ class Predictor:
         t = self.meas.t_s - self.meas.t_s[0]
         return self.pend(np.exp(-t / th.lag_s))
 
+    def ringing(self) -> list[np.ndarray]:
+        """Shapes of the pendulum's free motion from an unknown start (its two modes, e.g.
+        e^(-t/tau) cos and sin of its resonance): a log may begin with the pendulum swinging,
+        and a lightly damped one (Q of thousands) rings for hours; a replay that started it
+        at rest would lay its own ringing over every later comparison."""
+        a, _ = linear_matrices(self.params.pendulum)
+        lam = np.linalg.eigvals(a)
+        t = self.meas.t_s - self.meas.t_s[0]
+        if abs(lam[0].imag) > 0:
+            ring = np.exp(complex(lam[0]) * t)
+            modes = [ring.real, ring.imag]
+        else:
+            modes = [np.exp(float(lam[0].real) * t), np.exp(float(lam[1].real) * t)]
+        return [self.arm_m * m for m in modes]
+
     def predict(self, effects: EffectsParams) -> Prediction:
         sig, u = self.meas.sig, self._v
         for fx in effects.of("actuator"):
@@ -313,9 +331,9 @@ class Predictor:
         return Prediction(x, self._sensor(x, effects), phi_u)
 
     def start_shapes(self, effects: EffectsParams) -> list[np.ndarray]:
-        """Displacements [m] that the lags' unknown states at the log's start add, per unit
-        state: the table's thermal lag, and those of `effects`."""
-        shapes = [] if self._transient is None else [self._transient]
+        """Displacements [m] that the unknown states at the log's start add, per unit state:
+        the pendulum's swing (`ringing`), the table's thermal lag, and `effects`' lags."""
+        shapes = list(self._ringing) + ([] if self._transient is None else [self._transient])
         return shapes + [s for fx in effects.of("tilt") for s in self.state_shapes(fx)]
 
     def state_shapes(self, fx: Effect) -> list[np.ndarray]:

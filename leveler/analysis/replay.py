@@ -17,7 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from leveler.analysis.diagnose import BANDS_HZ, gap, warmup_samples
+from leveler.analysis.diagnose import BANDS_HZ, gap, residual, warmup_samples
+from leveler.analysis.drift import bands, drift, noise_periodogram, terms, verdict
 from leveler.analysis.predict import Measured, Predictor
 from leveler.analysis.spectral import REPORT_FREQS_HZ, asd_or_none
 from leveler.loop.pid import PID
@@ -49,11 +50,33 @@ def what_if(meas: Measured, pred: Predictor, gains: tuple[float, float, float]) 
 
 
 
-def replay(meas: Measured, gains: tuple[float, float, float] | None = None
-           ) -> tuple[dict[str, Any], Predictor, slice]:
+def against_noise(meas: Measured, pred: Predictor, span: slice,
+                  method: str) -> dict[str, Any]:
+    """The residual against the model's own noise, band by band, and with the slow drift
+    (`leveler.analysis.drift`, by `method`) set aside."""
+    params, logged = pred.params, meas.sig.temperature_k is not None
+    r = residual(meas, pred, span)
+    y = meas.y_m[span] - meas.y_m[span].mean()
+    d = drift(r, method, params, logged, meas.dt_s)
+    noise = noise_periodogram(params, logged, len(r), meas.dt_s)
+    per_band = bands(y, r, d, meas.dt_s, noise, BANDS_HZ)
+    yd, rd = y - d, r - d
+    return {
+        "drift": method,
+        "drift_rms_m": float(np.std(d)),
+        "variance_explained_less_drift": (1.0 - float(np.var(rd)) / float(np.var(yd))
+                                          if np.var(yd) > 0 else None),
+        "bands": per_band,
+        "verdict": verdict(per_band, terms(params, logged)),
+    }
+
+
+def replay(meas: Measured, gains: tuple[float, float, float] | None = None,
+           drift_method: str = "model") -> tuple[dict[str, Any], Predictor, slice]:
     """The metrics of one replay (and the what-if), with the predictor and the analysed
-    span for whoever plots or writes it."""
-    pred = Predictor(meas.config.plant, meas)
+    span for whoever plots or writes it. The pendulum's start is fitted (`Predictor.ringing`),
+    so a model that rings for hours does not lay a wrong start over the comparison."""
+    pred = Predictor(meas.config.plant, meas, ringing=True)
     skip = warmup_samples(meas, pred)
     span = slice(skip, len(meas.y_m))
     result: dict[str, Any] = {
@@ -65,7 +88,7 @@ def replay(meas: Measured, gains: tuple[float, float, float] | None = None
         "temperature_logged": meas.sig.temperature_k is not None,
         "filled_samples": meas.bad_samples,
         "effects_in_model": [fx.name for fx in pred.effects],
-    } | gap(meas, pred, span)
+    } | gap(meas, pred, span) | against_noise(meas, pred, span, drift_method)
     if gains is not None:
         fs = 1.0 / meas.dt_s
         y_new = what_if(meas, pred, gains)[span]
@@ -115,7 +138,6 @@ def plot_replay(path: str | Path, meas: Measured, pred: Predictor, span: slice,
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from leveler.analysis.diagnose import residual
     from leveler.analysis.plots import block_means
     from leveler.analysis.spectral import lpsd
 

@@ -19,9 +19,13 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         "temperature, if any) and compare its prediction with the logged sensor reading. "
         "Prints the residual RMS, its RMS and mean ASD in the bands 0.1-1 mHz, 1-10 mHz, "
         "10-100 mHz and 0.1-1 Hz, and the fraction of the measured variance the model "
-        "explains. The first minutes are skipped (the log may start out of equilibrium); "
-        "the table's unknown offset is removed. The model is the config stored in the log "
-        "unless --model names another (e.g. one written by `leveler diagnose`).")
+        "explains, as is and with the slow drift set aside (--drift), and per band the "
+        "residual's power over the model's own noise (sensor noise, its zero's random walk, an "
+        "unlogged temperature's tilt), with one sentence on whether the residual is what the "
+        "model itself calls unpredictable. The first minutes are skipped and the pendulum's "
+        "start is fitted (the log may start out of equilibrium); the table's unknown offset "
+        "is removed. The model is the config stored in the log unless --model names another "
+        "(e.g. one written by `leveler diagnose`).")
     p.add_argument("log", help="MCAP log written by leveler (or by `leveler import-csv`)")
     p.add_argument("--model", default=None, help="config file whose [plant] is the model "
                    "(default: the config stored in the log)")
@@ -29,6 +33,10 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
                    "sample to this MCAP file (topic /leveler/replay)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--plot", default=None, help="save time-series overlay and ASDs (PNG)")
+    p.add_argument("--drift", default="model", metavar="METHOD",
+                   help="how the slow drift is estimated and set aside: model (the model's "
+                   "random-walk terms through a Kalman smoother), poly:N (a polynomial of "
+                   "order N) or none (default: model)")
     p.add_argument("--gains", type=parse_gains, default=None, metavar="KP,KI,KD",
                    help="what-if: rerun the controller with these gains [V/m, V/(m s), "
                    "V s/m] against the model and the disturbance the log implies; prints "
@@ -45,7 +53,10 @@ def run(args: argparse.Namespace) -> int:
     if meas.incomplete:
         print(f"leveler replay: {partial_note(args.log, meas.incomplete, len(meas.y_m))}",
               file=sys.stderr)
-    result, pred, span = replay(meas, args.gains)
+    try:
+        result, pred, span = replay(meas, args.gains, args.drift)
+    except ValueError as exc:
+        raise LogError(str(exc)) from None
     if args.out:
         if Path(args.out).resolve() == Path(args.log).resolve():
             raise LogError(f"{args.out}: --out would overwrite the log being replayed")
@@ -85,10 +96,21 @@ def report(r: dict[str, Any]) -> str:
              f"residual RMS {r['rms_m'] * 1e9:.3g} nm; measured variance explained "
              f"{r['variance_explained'] * 100:.1f}%" if r["variance_explained"] is not None
              else f"residual RMS {r['rms_m'] * 1e9:.3g} nm", "",
-             f"{'band':>12} {'residual RMS [nm]':>18} {'mean ASD [nm/rtHz]':>19}"]
+             f"less the drift ({r['drift']}, RMS {r['drift_rms_m'] * 1e9:.3g} nm): "
+             + (f"{r['variance_explained_less_drift'] * 100:.1f}% explained"
+                if r["variance_explained_less_drift"] is not None else "n/a"), "",
+             f"{'band':>12} {'residual RMS':>13} {'mean ASD':>11} {'explained':>10} "
+             f"{'less drift':>10} {'residual/noise':>15}",
+             f"{'':>12} {'[nm]':>13} {'[nm/rtHz]':>11} {'[%]':>10} {'[%]':>10} "
+             f"{'[power]':>15}"]
     for band in BANDS_HZ:
-        lines.append(f"{band:>12} {_fmt_m(r['band_rms_m'][band]):>18} "
-                     f"{_fmt_m(r['band_asd_m_rthz'][band]):>19}")
+        b = r["bands"][band]
+        tail = (f"{b['variance_explained'] * 100:10.1f} "
+                f"{b['variance_explained_less_drift'] * 100:10.1f} "
+                f"{b['residual_over_noise']:15.3g}" if b else f"{'n/a':>10}")
+        lines.append(f"{band:>12} {_fmt_m(r['band_rms_m'][band]):>13} "
+                     f"{_fmt_m(r['band_asd_m_rthz'][band]):>11} {tail}")
+    lines += ["", r["verdict"]]
     w = r.get("what_if")
     if w:
         g = w["gains"]
