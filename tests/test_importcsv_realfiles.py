@@ -161,16 +161,16 @@ def test_a_gap_too_long_fails_unless_allowed(tmp_path: Path,
                                              capsys: pytest.CaptureFixture[str]) -> None:
     cols = logger_rows()
     rows = format_rows(cols)
-    del rows[100:130]  # 15 s without a sample, 31 intervals
+    del rows[100:190]  # 45 s without a sample, 91 intervals
     csv, out = tmp_path / "gap.csv", tmp_path / "gap.mcap"
     write(csv, rows)
     code, _, err = run(capsys, csv, "--out", out, *MAPPING, "--resample")
     assert code == 2
-    assert "line 104: 15.5 s without a sample since line 103" in err and "--max-gap" in err
+    assert "line 104: 45.5 s without a sample since line 103" in err and "--max-gap" in err
     assert not out.exists()
-    code, _, err = run(capsys, csv, "--out", out, *MAPPING, "--resample", "--max-gap", "20s")
+    code, _, err = run(capsys, csv, "--out", out, *MAPPING, "--resample", "--max-gap", "1min")
     assert code == 0, err
-    assert (read_log(out).samples["state"] == "interpolated").sum() == 30
+    assert (read_log(out).samples["state"] == "interpolated").sum() == 90
 
 
 def test_a_row_far_out_of_order_is_a_stray_row(tmp_path: Path,

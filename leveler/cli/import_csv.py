@@ -58,7 +58,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
                    "'interpolated' and every gap is an event in the log")
     p.add_argument("--max-gap", type=parse_duration, metavar="DURATION",
                    help="with --resample: the longest gap to interpolate across, e.g. 30s or "
-                   "2min (default: 10 sample intervals); a longer one fails the import")
+                   "2min (default: 60 sample intervals); a longer one fails the import")
     p.add_argument("--force", action="store_true", help="replace --out if it exists")
     p.set_defaults(func=run)
 

@@ -61,7 +61,7 @@ class ImportOptions:
     offset: dict[str, float] = field(default_factory=dict)
     delimiter: str = "auto"  # a key of DELIMITERS, or "auto": sniffed from the header
     resample: bool = False
-    max_gap_s: float | None = None  # longest gap --resample fills (None: 10 intervals)
+    max_gap_s: float | None = None  # longest gap --resample fills (None: 60 intervals)
 
     def __post_init__(self) -> None:
         for what, roles in (("--column", self.columns), ("--scale", self.scale),

@@ -18,7 +18,7 @@ import numpy as np
 from leveler.errors import LogError
 
 GAP_FACTOR = 1.5  # an interval this many times the mean is a gap (samples missing)
-DEFAULT_MAX_GAP_INTERVALS = 10
+DEFAULT_MAX_GAP_INTERVALS = 60  # 30 s at 2 Hz: a logger's hiccup, not an outage
 
 
 @dataclass(frozen=True)
@@ -67,7 +67,8 @@ def resample(t: np.ndarray, columns: dict[str, np.ndarray], lines: np.ndarray,
              max_gap_s: float | None, source: str) -> tuple[np.ndarray, dict[str, np.ndarray],
                                                               Resampling]:
     """(grid, columns on it, report): rows sorted by time, exact repeats dropped, each column
-    interpolated linearly onto t[0] + k * interval, the interval the mean of the rows'.
+    interpolated linearly onto start + k * interval, the line through the rows' times against
+    their places on the grid (the logger's clock, its jitter averaged out).
 
     Raises LogError naming the lines of the first gap longer than `max_gap_s` (default
     DEFAULT_MAX_GAP_INTERVALS intervals)."""
@@ -88,8 +89,12 @@ def resample(t: np.ndarray, columns: dict[str, np.ndarray], lines: np.ndarray,
     columns = {k: v[keep] for k, v in columns.items()}
     dt = np.diff(t)
     median = float(np.median(dt))
-    steps = max(round((t[-1] - t[0]) / median), 1)
-    interval = (t[-1] - t[0]) / steps
+    # each row's place on the grid, counted interval by interval (a count from the span alone,
+    # (t_last - t_first) / median, is off by one on a day whose median is rounded to the
+    # file's time resolution); the clock is the line through them, not the first row's jitter
+    idx = np.concatenate([[0], np.cumsum(np.maximum(np.rint(dt / median), 1))])
+    interval, start = (np.polyfit(idx, t, 1) if idx[-1] > 0 else (median, t[0]))
+    interval, start, steps = float(interval), float(start), int(idx[-1])
     limit = DEFAULT_MAX_GAP_INTERVALS * interval if max_gap_s is None else max_gap_s
     too_long = np.flatnonzero(dt > limit)
     if too_long.size:
@@ -99,7 +104,7 @@ def resample(t: np.ndarray, columns: dict[str, np.ndarray], lines: np.ndarray,
             f"{lines[i]} ({too_long.size} gap{'s' if too_long.size > 1 else ''} longer than "
             f"{limit:.6g} s); resampling would invent that much data. Allow it with --max-gap, "
             "or import the parts on either side as separate logs.")
-    grid = t[0] + interval * np.arange(steps + 1)
+    grid = start + interval * np.arange(steps + 1)
     out = {k: np.interp(grid, t, v) for k, v in columns.items()}
     report.interval_s = interval
     report.filled = _nearest_distance(t, grid) > 0.5 * interval
