@@ -157,3 +157,18 @@ def test_a_line_found_only_where_the_loop_was_open() -> None:
     for x in lines:  # a flat 1 nm/V response, read back exactly
         assert abs(x.transfer_m_per_v - 1e-9) < 3 * x.transfer_sigma_m_per_v + 1e-13
 
+
+
+def test_adjacent_steps_at_close_frequencies_are_two_lines() -> None:
+    """3.03 then 3.51 mHz with no pause between (one envelope covers both): each is its own
+    line with its own amplitude, and the response read at each is its own."""
+    t = np.arange(20_000) * DT
+    first = t < 5000
+    u = 50 + np.where(first, 6 * np.sin(2 * np.pi * 3.03e-3 * t),
+                      4 * np.sin(2 * np.pi * 3.51e-3 * t + 1.0))
+    gain = np.where(first, 2e-9, 5e-9)  # a response that differs between the steps
+    y = gain * (u - 50) + np.random.default_rng(1).normal(0, 1e-11, len(t))
+    lines = drive_lines(t, u, y)
+    assert [round(x.frequency_hz * 1e3, 2) for x in lines] == [3.03, 3.51]
+    assert [round(abs(x.command_v), 1) for x in lines] == [6.0, 4.0]
+    assert [x.transfer_m_per_v.real for x in lines] == pytest.approx([2e-9, 5e-9], rel=1e-3)

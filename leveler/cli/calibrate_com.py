@@ -39,9 +39,13 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--model", default=None, metavar="CONFIG",
                    help="with LOG: config whose [plant] gives the pendulum's mass, inertia and "
                    "the stated scale (default: the config stored in the log)")
+    p.add_argument("--model-out", default=None, metavar="FITTED.toml",
+                   help="with LOG: write the model with the fitted pendulum (com_length_m, "
+                   "flexure stiffness, damping) to this file, for `leveler replay --model`")
     p.add_argument("--settle-fraction", type=float, default=0.25,
                    help="with LOG: fraction of each drive step left out for the pendulum to "
-                   "ring down (default: %(default)g)")
+                   "ring down in the first fit; the second fits the ringing that one found "
+                   "and uses the steps whole (default: %(default)g)")
     p.add_argument("--counterweight-offsets-m", type=float, nargs="+",
                    default=[1e-3, 2e-3, 3e-3, 4e-3, 5e-3], metavar="L",
                    help="counterweight distances from the axis [m] (default: 1..5 mm, the "

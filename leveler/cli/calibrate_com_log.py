@@ -125,11 +125,40 @@ def plot(fit: PendulumFit, path: str, title: str) -> None:
     fig.savefig(Path(path), dpi=120, format="png")
 
 
+def fitted_pendulum(fit: PendulumFit) -> dict[str, float]:
+    """[plant.pendulum] as the fit says: L, the flexure k = J (w0^2 + g) and the damping
+    that gives the fitted Q at the fitted resonance, c = J w0 / Q."""
+    w0 = math.tau * fit.natural_frequency_hz
+    return {"com_length_m": fit.com_length_m,
+            "flexure_stiffness_nm_per_rad": fit.stiffness_nm_per_rad,
+            "damping_nms_per_rad": fit.inertia_kgm2 * w0 / fit.q}
+
+
+def write_model(args: argparse.Namespace, base_text: str, fit: PendulumFit) -> None:
+    """The model with the fitted pendulum, for `leveler replay --model` and the daemon; the
+    log and the input model are never overwritten, and the file is checked before it lands."""
+    from leveler.daemon.persist import set_keys, write_atomic
+    from leveler.errors import LogError
+    from leveler.settings import load_config
+
+    out = Path(args.model_out)
+    if out.resolve() == Path(args.log).resolve() or (
+            args.model and out.resolve() == Path(args.model).resolve()):
+        raise LogError(f"{out}: refusing to overwrite the log or the input model; choose "
+                       "another --model-out")
+    text = set_keys(base_text, "plant.pendulum", fitted_pendulum(fit))
+    text += (f"\n# [plant.pendulum] com_length_m, flexure_stiffness_nm_per_rad and "
+             f"damping_nms_per_rad fitted by `leveler calibrate-com` from "
+             f"{Path(args.log).name}: L = {fit.com_length_m:.4g} +- "
+             f"{fit.com_length_sigma_m:.2g} m\n")
+    write_atomic(out, text, load_config)
+
+
 def run(args: argparse.Namespace) -> int:
     """Find the drive lines where the loop was open, fit the pendulum, print or --json."""
     from leveler.analysis.predict import load_measured
     from leveler.errors import LogError
-    from leveler.procedures.drive_lines import drive_lines
+    from leveler.procedures.drive_lines import drive_spans, measure
     from leveler.procedures.pendulum_fit import fit_pendulum
 
     meas = load_measured(args.log, args.model)
@@ -137,15 +166,23 @@ def run(args: argparse.Namespace) -> int:
     if usable is not None and not usable.any():
         raise LogError(f"{args.log}: the loop was closed throughout; a drive line is read "
                        "where the loop was open (the command is the controller's otherwise)")
-    lines = drive_lines(meas.t_s, meas.u_v, meas.y_m, usable,
-                        settle_fraction=args.settle_fraction)
+    spans = drive_spans(meas.t_s, meas.u_v, usable)
     try:
-        fit = fit_pendulum(lines, meas.config.plant, meas.dt_s)
+        # first with each step's start left to ring down; then with the ringing that fit
+        # found fitted in every step, which uses the steps whole
+        first = fit_pendulum(measure(meas.t_s, meas.u_v, meas.y_m, spans, args.settle_fraction),
+                             meas.config.plant, meas.dt_s)
+        ring = (first.natural_frequency_hz, first.q)
+        fit = fit_pendulum(measure(meas.t_s, meas.u_v, meas.y_m, spans, 0.0, ring),
+                           meas.config.plant, meas.dt_s)
     except ValueError as exc:
         where = ("" if usable is None or usable.all() else
                  f" in the {usable.sum() * meas.dt_s:.6g} s where the loop was open")
         raise LogError(f"{args.log}: {str(exc).replace(' found', ' found' + where, 1)}") from None
     out = result(fit, args.log, meas.model_source)
+    if args.model_out:
+        write_model(args, meas.model_text, fit)
+        out["model_out"] = args.model_out
     if args.plot:
         plot(fit, args.plot, f"{Path(args.log).name}: response to the drive lines")
         out["plot"] = args.plot

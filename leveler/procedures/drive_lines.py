@@ -26,6 +26,8 @@ LINE_Z = 100.0  # a line's power on its span over the residual's per frequency (
 MAX_REJECTED = 8  # candidates in a row that were no line: the search is over
 FLOOR_BINS = 257  # the running median's width in periodogram bins
 ENVELOPE_CYCLES = 3.0  # demodulation window in cycles of the line
+STEADY_CYCLES = 2.0  # windows in which a line's amplitude must hold
+STEADY_TOL = 0.25  # how far (relative) from the span's median amplitude it may stray
 MIN_CYCLES = 3.0  # a span shorter than this many cycles is not a drive line
 MIN_SAMPLES = 64  # nor one of fewer samples
 SETTLE_FRACTION = 0.25  # of each span, left for the pendulum to ring down
@@ -89,7 +91,7 @@ def _peak(r: np.ndarray, dt: float) -> tuple[float, float]:
     p = np.abs(np.fft.rfft(r)) ** 2  # no taper: it would hide a line at either end
     floor = median_filter(p, size=FLOOR_BINS, mode="nearest")
     ratio = p / np.maximum(floor, np.finfo(float).tiny)
-    ratio[:3] = 0.0  # the mean and the record's own length
+    ratio[:max(3, math.ceil(MIN_CYCLES))] = 0.0  # fewer cycles than a line needs
     ratio[int(NYQUIST_FRACTION * (len(p) - 1)):] = 0.0  # a sinusoid there is barely sampled
     peaky = ratio >= CANDIDATE_RATIO
     if not peaky.any():
@@ -105,20 +107,41 @@ def _peak(r: np.ndarray, dt: float) -> tuple[float, float]:
 
 
 def _span(r: np.ndarray, t: np.ndarray, f: float, dt: float) -> tuple[int, int]:
-    """Where the line at f surely runs: the run of its demodulated envelope above half its
-    peak, less half the envelope's smoothing at each end. The half-peak crossings are the
-    edges only to within the smoothing (a neighbouring step in phase with the line moves
-    them), and a span reaching into a pause or the next step would put a piece of the line
-    there when it is taken out, a piece that passes for harmonics."""
-    width = max(round(ENVELOPE_CYCLES / (f * dt)), 8)
-    z = r * np.exp(-2j * np.pi * f * t)
-    env = np.abs(np.convolve(z, np.ones(width) / width, mode="same"))
+    """Roughly where the line at f runs: the run of its demodulated envelope above half its
+    peak (`_steady` then finds where it really is steady)."""
+    width = min(max(round(ENVELOPE_CYCLES / (f * dt)), 8), len(r))
+    z = np.concatenate([[0], np.cumsum(r * np.exp(-2j * np.pi * f * t))])
+    lo = np.clip(np.arange(len(r)) - width // 2, 0, len(r))
+    env = np.abs(z[np.minimum(lo + width, len(r))] - z[lo]) / width  # moving mean, centred
     top = int(np.argmax(env))
     for a, b in _runs(env > 0.5 * env[top]):
         if a <= top < b:
-            inner = (a + width // 2, b - width // 2)
-            return inner if inner[1] > inner[0] else (a, b)
+            return a, b
     return top, top + 1  # pragma: no cover - the peak is in its own run
+
+
+def _steady(r: np.ndarray, t: np.ndarray, f: float, a: int, b: int,
+            dt: float) -> tuple[int, int]:
+    """The run of STEADY_CYCLES windows around [a, b) where the line's complex amplitude stays
+    within STEADY_TOL of its median: a neighbouring step at a close frequency turns its phase
+    (3.03 and 3.51 mHz merged in one envelope), a pause or a step's edge shrinks it, and a
+    span reaching into either would put a piece of the line there when it is taken out."""
+    width = max(round(STEADY_CYCLES / (f * dt)), 8)
+    lo = max(a - 2 * width, 0)
+    starts = np.arange(lo, min(b + 2 * width, len(r)) - width + 1, width)
+    if len(starts) == 0:
+        return a, b
+    idx = starts[:, None] + np.arange(width)[None, :]
+    c = 2 * np.mean(r[idx] * np.exp(-2j * np.pi * f * t[idx]), axis=1)
+    inside = (starts >= a) & (starts + width <= b)
+    pick = c[inside] if inside.any() else c
+    ref = complex(np.median(pick.real), np.median(pick.imag))
+    ok = np.abs(c - ref) < STEADY_TOL * abs(ref)
+    runs = _runs(ok)
+    if not runs:
+        return a, a
+    first, last = max(runs, key=lambda jk: jk[1] - jk[0])
+    return int(starts[first]), int(starts[last - 1] + width)
 
 
 def _refine(r: np.ndarray, t: np.ndarray, f: float) -> float:
@@ -211,7 +234,13 @@ def _search(u: np.ndarray, t: np.ndarray, dt: float, usable: np.ndarray) -> list
         if runs:
             c, d = max(runs, key=lambda cd: cd[1] - cd[0])
             a, b = a + c, a + d
+        if (b - a) * dt * f >= MIN_CYCLES and b - a >= MIN_SAMPLES:
+            f = _refine(r[a:b], t[a:b], f)
+            a0, b0 = a, b
+            a, b = _steady(r, t, f, a, b, dt)
+            a, b = max(a, a0), min(b, b0)
         if (b - a) * dt * f < MIN_CYCLES or b - a < MIN_SAMPLES:  # a span's edge: blanked
+            rejected += not np.any(r[a:b])  # nothing left to blank: no progress
             r[a:b] = 0.0
             continue
         f = _refine(r[a:b], t[a:b], f)
@@ -231,19 +260,39 @@ def _search(u: np.ndarray, t: np.ndarray, dt: float, usable: np.ndarray) -> list
     return spans
 
 
-def drive_lines(t_s: np.ndarray, u_v: np.ndarray, y_m: np.ndarray,
-                usable: np.ndarray | None = None,
-                settle_fraction: float = SETTLE_FRACTION) -> list[DriveLine]:
-    """Every drive line of the command `u_v` with the reading's response to it, by frequency.
+def _ringing(t: np.ndarray, f0_hz: float, q: float) -> list[np.ndarray]:
+    """The pendulum's free motion from the span's start: e^(-s t) cos and sin of its
+    resonance (two real decays when it is overdamped)."""
+    w0, t = 2 * np.pi * f0_hz, t - t[0]
+    if q > 0.5:
+        s, wd = w0 / (2 * q), w0 * math.sqrt(1 - 1 / (4 * q * q))
+        return [np.exp(-s * t) * np.cos(wd * t), np.exp(-s * t) * np.sin(wd * t)]
+    root = w0 * math.sqrt(1 / (4 * q * q) - 1)
+    return [np.exp((-w0 / (2 * q) + root) * t), np.exp((-w0 / (2 * q) - root) * t)]
 
-    `usable`: samples the search may use (the loop open: in a closed loop the command is the
-    controller's answer to the reading, not a drive). The first `settle_fraction` of each
-    line's span is left out of the reading's fit: the pendulum rings after each change."""
+
+def drive_spans(t_s: np.ndarray, u_v: np.ndarray,
+                usable: np.ndarray | None = None) -> list[_Span]:
+    """Where each drive line of the command runs (`_search`), for `measure` to read."""
+    t = np.asarray(t_s, float) - float(t_s[0])
+    usable = np.ones(len(t), bool) if usable is None else np.asarray(usable, bool)
+    return _search(np.asarray(u_v, float), t, float(np.median(np.diff(t))), usable)
+
+
+def measure(t_s: np.ndarray, u_v: np.ndarray, y_m: np.ndarray, spans: list[_Span],
+            settle_fraction: float = SETTLE_FRACTION,
+            ringing: tuple[float, float] | None = None) -> list[DriveLine]:
+    """Each span's line in the command and the reading, by frequency.
+
+    The reading is fitted on the span less its first `settle_fraction` (the pendulum rings
+    after each change), with every other line running there, the drift polynomial and, when
+    `ringing` gives the pendulum's (resonance, Q), its free motion: then the span can be
+    used whole. The uncertainty is the residual's spectrum near the line through the fit's
+    own normal matrix, so a line sharing its span with a collinear one (its own ringing
+    near the resonance) is not credited with an orthogonal line's precision."""
     t = np.asarray(t_s, float) - float(t_s[0])
     u, y = np.asarray(u_v, float), np.asarray(y_m, float)
-    usable = np.ones(len(t), bool) if usable is None else np.asarray(usable, bool)
     dt = float(np.median(np.diff(t)))
-    spans = _search(u, t, dt, usable)
     with_harmonics = {(s.a, s.b) for s in spans if s.harmonic > 1}
     lines = []
     for s in spans:
@@ -255,14 +304,31 @@ def drive_lines(t_s: np.ndarray, u_v: np.ndarray, y_m: np.ndarray,
         others = [o.frequency_hz for o in spans if o is not s
                   and min(o.b, s.b) - max(o.a, a) > 0.5 * (s.b - a)]
         design = _design(t[seg], [s.frequency_hz, *others])
+        if ringing is not None:
+            design = np.column_stack([design, *_ringing(t[seg], *ringing)])
         cu, *_ = np.linalg.lstsq(design, u[seg], rcond=None)
         cy, *_ = np.linalg.lstsq(design, y[seg], rcond=None)
         res = y[seg] - design @ cy
+        inv = np.linalg.pinv(design.T @ design)
+        j = DRIFT_ORDER + 1
+        inflation = math.sqrt(0.25 * (s.b - a) * (inv[j, j] + inv[j + 1, j + 1]))
         lines.append(DriveLine(
             s.frequency_hz, float(t_s[a]), float(t_s[s.b - 1]), _amplitudes(cu, 1)[0],
-            _amplitudes(cy, 1)[0], _noise_sigma(res, dt, s.frequency_hz), s.harmonic,
-            "square" if (s.a, s.b) in with_harmonics else "sine"))
+            _amplitudes(cy, 1)[0], _noise_sigma(res, dt, s.frequency_hz) * inflation,
+            s.harmonic, "square" if (s.a, s.b) in with_harmonics else "sine"))
     return sorted(lines, key=lambda line: line.frequency_hz)
 
 
-__all__ = ["DriveLine", "drive_lines"]
+def drive_lines(t_s: np.ndarray, u_v: np.ndarray, y_m: np.ndarray,
+                usable: np.ndarray | None = None,
+                settle_fraction: float = SETTLE_FRACTION,
+                ringing: tuple[float, float] | None = None) -> list[DriveLine]:
+    """Every drive line of the command `u_v` with the reading's response to it, by frequency
+    (`drive_spans`, then `measure`).
+
+    `usable`: samples the search may use (the loop open: in a closed loop the command is the
+    controller's answer to the reading, not a drive)."""
+    return measure(t_s, u_v, y_m, drive_spans(t_s, u_v, usable), settle_fraction, ringing)
+
+
+__all__ = ["DriveLine", "drive_lines", "drive_spans", "measure"]
