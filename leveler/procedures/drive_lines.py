@@ -32,7 +32,6 @@ MIN_CYCLES = 3.0  # a span shorter than this many cycles is not a drive line
 MIN_SAMPLES = 64  # nor one of fewer samples
 SETTLE_FRACTION = 0.25  # of each span, left for the pendulum to ring down
 DRIFT_ORDER = 3  # polynomial for the slow drift under each span
-NOISE_BINS = 20  # each side of a line: residual periodogram bins for its noise level
 MAX_LINES = 60  # fundamentals
 MAX_HARMONIC = 31  # a line's harmonics taken out of the command with it
 MAX_HARMONIC_LINE = 9  # and kept as lines of their own up to this one
@@ -174,18 +173,20 @@ def _amplitudes(coef: np.ndarray, nfreq: int) -> list[complex]:
     return [complex(c[2 * j], -c[2 * j + 1]) for j in range(nfreq)]
 
 
-def _noise_sigma(res: np.ndarray, dt: float, f: float) -> float:
-    """1 sigma of one quadrature of a fitted amplitude at f: sqrt(S(f) / T), S the residual's
-    one-sided PSD near f (the median of the bins around it, the line's own bins left out)."""
-    n = len(res)
-    p = 2 * dt / n * np.abs(np.fft.rfft(res)) ** 2
-    k = f * n * dt
-    idx = np.arange(len(p))
-    near = (np.abs(idx - k) <= NOISE_BINS + 3) & (np.abs(idx - k) >= 3) & (idx > 0)
-    if not near.any():
-        near = idx > 0
-    s = float(np.median(p[near])) / math.log(2)  # an exponential's median is ln 2 its mean
-    return math.sqrt(s / (n * dt))
+def _noise_sigma(res: np.ndarray, t: np.ndarray, f: float) -> float:
+    """1 sigma of one quadrature of a fitted amplitude at f: the RMS of what the same fit
+    (sinusoid and drift polynomial) finds in the residual at PROBES frequencies beside f,
+    2 to 8 of the span's bins away on either side. Under a red drift the estimator's noise
+    is the spectrum leaking in through its sidelobes, not the level at f (a periodogram's
+    median there put the low steps of an independent sweep 2-3.6 of their sigmas off)."""
+    span = t[-1] - t[0] + (t[1] - t[0])
+    probes = [f + k / span for k in (*range(-8, -1), *range(2, 9)) if f + k / span > 0]
+    power = []
+    for fp in probes:
+        design = _design(t, [fp])
+        coef, *_ = np.linalg.lstsq(design, res, rcond=None)
+        power.append(float(coef[-2] ** 2 + coef[-1] ** 2))
+    return math.sqrt(0.5 * float(np.mean(power)))
 
 
 def _take(r: np.ndarray, t: np.ndarray, f: float, seg: slice,
@@ -314,7 +315,7 @@ def measure(t_s: np.ndarray, u_v: np.ndarray, y_m: np.ndarray, spans: list[_Span
         inflation = math.sqrt(0.25 * (s.b - a) * (inv[j, j] + inv[j + 1, j + 1]))
         lines.append(DriveLine(
             s.frequency_hz, float(t_s[a]), float(t_s[s.b - 1]), _amplitudes(cu, 1)[0],
-            _amplitudes(cy, 1)[0], _noise_sigma(res, dt, s.frequency_hz) * inflation,
+            _amplitudes(cy, 1)[0], _noise_sigma(res, t[seg], s.frequency_hz) * inflation,
             s.harmonic, "square" if (s.a, s.b) in with_harmonics else "sine"))
     return sorted(lines, key=lambda line: line.frequency_hz)
 

@@ -22,6 +22,7 @@ zero; the covariance is scaled by the reduced chi-square when that is above 1.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -112,6 +113,8 @@ def _grid_start(w: np.ndarray, h: np.ndarray, sig: np.ndarray) -> tuple[float, f
     a = (np.sum(wt * (shape.conj() * h).real, axis=-1)
          / np.sum(wt * np.abs(shape) ** 2, axis=-1))
     chi2 = np.sum(wt * np.abs(a[..., None] * shape - h) ** 2, axis=-1)
+    # a flexure pushes, never pulls: a hanging pendulum's resonance is above its zero
+    chi2 = np.where(w0s[..., 0] ** 2 > 1.001 * np.maximum(-gs[..., 0], 0.0), chi2, np.inf)
     i, j, k = np.unravel_index(int(np.argmin(chi2)), chi2.shape)
     return float(a[i, j, k]), float(gs[i, 0, 0, 0]), float(w0s[0, j, 0, 0]), float(GRID_Q[k])
 
@@ -128,14 +131,18 @@ def fit_pendulum(lines: list[DriveLine], plant: PlantParams, dt_s: float) -> Pen
     h = np.array([line.transfer_m_per_v for line in lines])
     sig = np.array([line.transfer_sigma_m_per_v for line in lines])
     stated = pe.sensor_arm_m * plant.piezo.gain_m_per_v / plant.platform.support_spacing_m
-    stated_rel = math.sqrt(u.sensor_arm_rel**2 + u.piezo_gain_rel**2
+    stated_rel = math.sqrt(u.sensor_arm_rel**2 + u.sensor_gain_rel**2 + u.piezo_gain_rel**2
                            + u.support_spacing_rel**2)
     a0, g0, w00, q0 = _grid_start(w, h, sig)
     ws = float(np.exp(np.mean(np.log(w))))  # scales the parameters to order one
 
     def unpack(x: np.ndarray) -> tuple[float, float, float, float, float]:
-        return (x[0] * abs(a0), x[1] * ws * ws, math.exp(x[2]) * ws, math.exp(x[3]),
-                x[4] * dt_s)
+        """(A, g, w0, Q, tau); w0^2 = k / J + max(-g, 0) with k / J = e^x2 ws^2 > 0, so the
+        flexure is a spring (a fit of a noisy sweep once put the resonance below the zero:
+        k < 0, and 27 sigma off)."""
+        g = x[1] * ws * ws
+        w0 = math.sqrt(math.exp(x[2]) * ws * ws + max(-g, 0.0))
+        return x[0] * abs(a0), g, w0, math.exp(x[3]), x[4] * dt_s
 
     def residuals(x: np.ndarray) -> np.ndarray:
         d = (response(w, *unpack(x)) - h) / sig
@@ -144,23 +151,33 @@ def fit_pendulum(lines: list[DriveLine], plant: PlantParams, dt_s: float) -> Pen
             out.append(np.array([(unpack(x)[0] - stated) / (stated_rel * stated)]))
         return np.concatenate(out)
 
-    x0 = np.array([a0 / abs(a0), g0 / ws**2, math.log(w00 / ws), math.log(q0), 0.0])
+    x0 = np.array([a0 / abs(a0), g0 / ws**2, math.log((w00**2 - max(-g0, 0.0)) / ws**2),
+                   math.log(q0), 0.0])
     fit = least_squares(residuals, x0, method="lm", x_scale="jac")
     chi2 = float(np.sum(fit.fun**2))
     dof = max(2 * len(lines) + (stated_rel > 0) - 4, 1)  # the lag's prior is paid by it
     jac = fit.jac
     cov = np.linalg.pinv(jac.T @ jac) * max(1.0, chi2 / dof)
     a, g, w0, q, tau = unpack(fit.x)
-    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    sd = _propagated(unpack, fit.x, cov)  # of (A, g, w0, Q, tau)
     per_mass = pe.inertia_kgm2 / (pe.mass_kg * pe.gravity_m_per_s2)
     com = g * per_mass
-    com_sigma = math.hypot(sd[1] * ws * ws * per_mass,
-                           com * math.hypot(u.inertia_rel, u.mass_rel))
+    com_sigma = math.hypot(sd[1] * per_mass, com * math.hypot(u.inertia_rel, u.mass_rel))
     return PendulumFit(
-        lines, a, sd[0] * abs(a0), stated, stated_rel, g, sd[1] * ws * ws,
-        w0 / math.tau, sd[2] * w0 / math.tau, tau, sd[4] * dt_s, q, sd[3] * q, com,
-        com_sigma, pe.mass_kg, pe.inertia_kgm2, chi2, dof,
+        lines, a, sd[0], stated, stated_rel, g, sd[1], w0 / math.tau, sd[2] / math.tau, tau,
+        sd[4], q, sd[3], com, com_sigma, pe.mass_kg, pe.inertia_kgm2, chi2, dof,
         [complex(v) for v in response(w, a, g, w0, q, tau)])
+
+
+def _propagated(fn: Callable[[np.ndarray], tuple[float, ...]], x: np.ndarray,
+                cov: np.ndarray) -> np.ndarray:
+    """1-sigma of fn(x)'s outputs under x's covariance, by central differences."""
+    jac = np.empty((len(fn(x)), len(x)))
+    for i in range(len(x)):
+        step = np.zeros_like(x)
+        step[i] = 1e-6 * max(1.0, abs(x[i]))
+        jac[:, i] = (np.asarray(fn(x + step)) - np.asarray(fn(x - step))) / (2 * step[i])
+    return np.sqrt(np.maximum(np.diag(jac @ cov @ jac.T), 0.0))
 
 
 __all__ = ["PendulumFit", "fit_pendulum", "response"]
