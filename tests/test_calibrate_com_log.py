@@ -25,6 +25,7 @@ DT = 0.5
 HANGING = PendulumParams(mass_kg=1.0, com_length_m=-2e-5, flexure_stiffness_nm_per_rad=4e-4,
                          inertia_kgm2=0.05, damping_nms_per_rad=2e-4, sensor_arm_m=0.1)
 TILT_PER_V = PlantParams().piezo.gain_m_per_v / PlantParams().platform.support_spacing_m
+SIM_TOML = Path(__file__).resolve().parents[1] / "config" / "sim.toml"
 
 
 def sweep(pe: PendulumParams, freqs: np.ndarray, waveform: str, seed: int,
@@ -172,3 +173,41 @@ def test_adjacent_steps_at_close_frequencies_are_two_lines() -> None:
     assert [round(x.frequency_hz * 1e3, 2) for x in lines] == [3.03, 3.51]
     assert [round(abs(x.command_v), 1) for x in lines] == [6.0, 4.0]
     assert [x.transfer_m_per_v.real for x in lines] == pytest.approx([2e-9, 5e-9], rel=1e-3)
+
+
+def test_modulate_reads_a_recorded_square_wave(tmp_path: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    """`leveler modulate LOG`: the default stand's inverted pendulum under 6 x 60 s of
+    +-2 V, recorded at 10 Hz by another system: its step per volt is the model's (the
+    recording is the model's own pendulum), and a log without a square wave is an error."""
+    pe, dt = PlantParams().pendulum, 0.1
+    t = np.arange(9000) * dt
+    u = np.full(len(t), 75.0)
+    on = (t >= 137.3) & (t < 137.3 + 6 * 60)
+    u[on] += np.where(((t[on] - 137.3) % 60) < 30, 2.0, -2.0)
+    model = PendulumModel(pe, dt)
+    model.settle(pe, TILT_PER_V * 75)
+    y = np.array([model.step(TILT_PER_V * v) for v in u]) * pe.sensor_arm_m
+    y += np.random.default_rng(0).normal(0, 1e-9, len(t))
+    csv, log = tmp_path / "m.csv", tmp_path / "m.mcap"
+    csv.write_text("t_s,actuator_V,sensor_m\n" + "\n".join(
+        f"{a!r},{b!r},{c!r}" for a, b, c in zip(t.tolist(), u.tolist(), y.tolist(),
+                                                 strict=True)) + "\n")
+    assert main(["import-csv", str(csv), "--out", str(log)]) == 0
+    capsys.readouterr()
+    assert main(["modulate", str(log), "--model", str(SIM_TOML), "--json"]) == 0
+    (wave,) = json.loads(capsys.readouterr().out)["waves"]
+    assert wave["wave"]["period_s"] == pytest.approx(60, rel=0.005)
+    assert wave["wave"]["amplitude_v"] == pytest.approx(2, rel=0.02)
+    assert wave["measured_over_model"] == pytest.approx(1, abs=0.01)
+    assert wave["ip_m_per_v"] == pytest.approx(pe.sensor_arm_m * pe.amplification * TILT_PER_V,
+                                               rel=0.01)
+    log2 = tmp_path / "quiet.mcap"
+    csv.write_text("t_s,actuator_V,sensor_m\n" + "\n".join(
+        f"{a!r},75.0,{c!r}" for a, c in zip(t.tolist(), y.tolist(), strict=True)) + "\n")
+    assert main(["import-csv", str(csv), "--out", str(log2)]) == 0
+    capsys.readouterr()
+    assert main(["modulate", str(log2), "--model", str(SIM_TOML)]) == 2
+    assert "no square-wave modulation of the piezo found" in capsys.readouterr().err
+    assert main(["modulate", "--sim"]) == 2
+    assert "--amplitude-v and --period needed" in capsys.readouterr().err

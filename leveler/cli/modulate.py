@@ -31,11 +31,20 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         "`modulating`, `procedure` events, every sample in the log); it refuses while the "
         "loop is engaged unless --force, which opens the loop for the wave and closes it "
         "again afterwards. `leveler stop` aborts a wave; a fault ends it with the piezo safe. "
-        "With --sim the same procedure runs on the simulated stand in virtual time.")
-    p.add_argument("--amplitude-v", type=float, required=True,
+        "With --sim the same procedure runs on the simulated stand in virtual time. With LOG, "
+        "a recording is analysed instead: every square-wave modulation of the piezo found in "
+        "it where the loop was open (leveler's own `modulate` procedures, or another "
+        "system's, imported with `leveler import-csv`), each measured the same way against "
+        "the config stored in the log or --model.")
+    p.add_argument("log", nargs="?", default=None,
+                   help="a recording to analyse instead of running a wave")
+    p.add_argument("--model", default=None, metavar="CONFIG",
+                   help="with LOG: the config whose piezo geometry and pendulum are the model "
+                   "(default: the config stored in the log)")
+    p.add_argument("--amplitude-v", type=float, default=None,
                    help="piezo swing about the held voltage [V]: +amplitude for the first half "
                    "of each period, -amplitude for the second (peak to peak = 2 x amplitude)")
-    p.add_argument("--period", type=duration, required=True,
+    p.add_argument("--period", type=duration, default=None,
                    help="square-wave period, e.g. 60s or 5min (at least 4 loop periods)")
     p.add_argument("--cycles", type=int, default=3, help="number of periods (default: 3)")
     p.add_argument("--force", action="store_true",
@@ -68,6 +77,13 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.log is not None:
+        return _recorded(args)
+    missing = [o for o, v in (("--amplitude-v", args.amplitude_v), ("--period", args.period))
+               if v is None]
+    if missing:
+        raise ClientError(f"{' and '.join(missing)} needed to run a wave (or give a LOG to "
+                          "analyse a recorded one)")
     if args.sim:
         result = _simulated(args)
     else:
@@ -123,6 +139,36 @@ def _on_daemon(args: argparse.Namespace) -> dict[str, Any]:
     from leveler.procedures.tilt_modulation import analyze
 
     return analyze(wave, np.array(t), np.array(y), np.array(v), reply["model"], "daemon")
+
+
+def _recorded(args: argparse.Namespace) -> int:
+    """Every square wave found in the log where the loop was open, measured as a run is."""
+    from leveler.analysis.predict import load_measured
+    from leveler.errors import LogError
+    from leveler.procedures.tilt_modulation import analyze, square_waves
+
+    meas = load_measured(args.log, args.model)
+    usable = None if meas.engaged is None else ~meas.engaged
+    waves = square_waves(meas.t_s, meas.u_v, usable)
+    if not waves:
+        raise LogError(f"{args.log}: no square-wave modulation of the piezo found where the "
+                       "loop was open (a sine sweep is read by `leveler calibrate-com LOG`)")
+    pend, pz = meas.config.plant.pendulum, meas.config.plant.piezo
+    model = {"sensor_m_per_rad": pend.amplification * pend.sensor_arm_m,
+             "tilt_rad_per_v": pz.gain_m_per_v / meas.config.plant.platform.support_spacing_m}
+    results = []
+    for wave in waves:
+        sel = (meas.t_s >= wave.start_t_s) & (meas.t_s < wave.end_t_s)
+        r = analyze(wave, meas.t_s[sel], meas.y_m[sel], meas.u_v[sel], model,
+                    f"recording {args.log}")
+        if args.tp_peak_to_peak_m is not None:
+            from leveler.procedures.tilt_modulation import torsion_split
+
+            r["tp"] = torsion_split(r, args.tp_peak_to_peak_m, _tp_params(args))
+        results.append(r)
+    print(json.dumps({"log": args.log, "model_source": meas.model_source, "waves": results})
+          if args.json else "\n\n".join(_report(r) for r in results))
+    return 0
 
 
 def _simulated(args: argparse.Namespace) -> dict[str, Any]:

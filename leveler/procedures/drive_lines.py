@@ -89,7 +89,7 @@ def _peak(r: np.ndarray, dt: float) -> tuple[float, float]:
     n = len(r)
     p = np.abs(np.fft.rfft(r)) ** 2  # no taper: it would hide a line at either end
     floor = median_filter(p, size=FLOOR_BINS, mode="nearest")
-    ratio = p / np.maximum(floor, np.finfo(float).tiny)
+    ratio = p / np.maximum(floor, 1e-12 * float(p.max()) + np.finfo(float).tiny)
     ratio[:max(3, math.ceil(MIN_CYCLES))] = 0.0  # fewer cycles than a line needs
     ratio[int(NYQUIST_FRACTION * (len(p) - 1)):] = 0.0  # a sinusoid there is barely sampled
     peaky = ratio >= CANDIDATE_RATIO

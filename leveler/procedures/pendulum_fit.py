@@ -33,6 +33,7 @@ from leveler.sim.params import PlantParams
 
 GRID_POINTS = 48
 GRID_Q = (2.0, 10.0, 50.0, 300.0)
+LOG_Q_RANGE = (-3.0, 16.0)  # Q from 0.05 to 9e6: a noisy sweep's Q may run off to either end
 
 
 @dataclass(frozen=True, slots=True)
@@ -141,8 +142,9 @@ def fit_pendulum(lines: list[DriveLine], plant: PlantParams, dt_s: float) -> Pen
         flexure is a spring (a fit of a noisy sweep once put the resonance below the zero:
         k < 0, and 27 sigma off)."""
         g = x[1] * ws * ws
-        w0 = math.sqrt(math.exp(x[2]) * ws * ws + max(-g, 0.0))
-        return x[0] * abs(a0), g, w0, math.exp(x[3]), x[4] * dt_s
+        w0 = math.sqrt(math.exp(min(x[2], 60.0)) * ws * ws + max(-g, 0.0))
+        q = math.exp(min(max(x[3], LOG_Q_RANGE[0]), LOG_Q_RANGE[1]))  # no overflow on a
+        return x[0] * abs(a0), g, w0, q, x[4] * dt_s                  # flat likelihood
 
     def residuals(x: np.ndarray) -> np.ndarray:
         d = (response(w, *unpack(x)) - h) / sig

@@ -85,6 +85,31 @@ def analyze(wave: SquareWave, t: np.ndarray, y: np.ndarray, v: np.ndarray,
     }
 
 
+def square_waves(t_s: np.ndarray, u_v: np.ndarray,
+                 usable: np.ndarray | None = None) -> list[SquareWave]:
+    """The square waves of a recorded command (`drive_lines`: a line with harmonics on its
+    span), each as the `SquareWave` that ran: its whole cycles on the span, the start where
+    its fundamental, (4 A / pi) sin(w (t - start)), rises through zero."""
+    from leveler.procedures.drive_lines import drive_spans, measure
+
+    spans = drive_spans(t_s, u_v, usable)
+    squared = {(s.a, s.b) for s in spans if s.harmonic > 1}
+    waves = []
+    for line in measure(t_s, u_v, u_v, [s for s in spans if s.harmonic == 1
+                                        and (s.a, s.b) in squared], settle_fraction=0.0):
+        w, period = 2 * math.pi * line.frequency_hz, 1 / line.frequency_hz
+        start = float(t_s[0]) - (math.atan2(line.command_v.imag, line.command_v.real)
+                                 + math.pi / 2) / w
+        start += math.ceil((line.start_s - start) / period) * period  # first whole cycle
+        cycles = int((line.end_s - start) // period)
+        if cycles < 1:
+            continue
+        sel = (t_s >= start) & (t_s < start + cycles * period)
+        waves.append(SquareWave(float(np.mean(u_v[sel])), abs(line.command_v) * math.pi / 4,
+                                period, cycles, start))
+    return waves
+
+
 def torsion_split(r: dict[str, Any], tp_pp_m: float, tp: TorsionParams) -> dict[str, Any]:
     """The IP/TP ratio, and the roll that the TP's step implies next to the IP's pitch."""
     pitch = r["tilt_peak_to_peak_rad"]
