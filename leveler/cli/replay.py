@@ -91,7 +91,8 @@ def report(r: dict[str, Any]) -> str:
 
     lines = [f"replay of {r['log']} against {r['model']}",
              f"{r['samples']} samples at {r['rate_hz']:g} Hz; analysed "
-             f"{r['analysed_s'][0]:.0f}-{r['analysed_s'][1]:.0f} s; temperature "
+             f"{r['analysed_s'][0] - r['first_t_s']:.0f}-"
+             f"{r['analysed_s'][1] - r['first_t_s']:.0f} s from the first sample; temperature "
              f"{'used' if r['temperature_logged'] else 'not logged'}",
              f"residual RMS {r['rms_m'] * 1e9:.3g} nm; measured variance explained "
              f"{r['variance_explained'] * 100:.1f}%" if r["variance_explained"] is not None
