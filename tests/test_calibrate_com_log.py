@@ -131,6 +131,8 @@ def test_no_drive_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture
     assert main(["import-csv", str(csv), "--out", str(log)]) == 0
     capsys.readouterr()
     assert main(["calibrate-com", str(log)]) == 2
+    assert "carries no config (imported?): give --model" in capsys.readouterr().err
+    assert main(["calibrate-com", str(log), "--model", str(SIM_TOML)]) == 2
     err = capsys.readouterr().err
     assert "0 drive lines found" in err and "at least 4 frequencies" in err
 

@@ -193,6 +193,7 @@ def test_a_row_far_out_of_order_is_a_stray_row(tmp_path: Path,
     (["--scale", "t=2"], "converted by --time-unit"),
     (["--scale", "sensor=1", "--scale", "sensor=2"], "given twice"),
     (["--max-gap", "5s"], "--max-gap needs --resample"),
+    (["--column", "sensor=pzt_V", "--column", "actuator=pzt_V"], "named for two roles"),
 ])
 def test_bad_options_are_named(tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                args: list[str], message: str) -> None:

@@ -108,7 +108,7 @@ def bands(y: np.ndarray, r: np.ndarray, d: np.ndarray, dt_s: float,
         return np.abs(np.fft.rfft(win * (x - x.mean()))) ** 2 * scale
 
     f = np.fft.rfftfreq(len(r), dt_s)
-    py, pr, pyd, prd = power(y), power(r), power(y - d), power(r - d)
+    py, pr, pyd, prd, pd = power(y), power(r), power(y - d), power(r - d), power(d)
     out: dict[str, Any] = {}
     for name, (lo, hi) in bands_hz.items():
         sel = (f >= lo) & (f < hi)
@@ -121,7 +121,7 @@ def bands(y: np.ndarray, r: np.ndarray, d: np.ndarray, dt_s: float,
             "bins": n,
             "variance_explained": 1 - float(np.sum(pr[sel]) / np.sum(py[sel])),
             "variance_explained_less_drift": 1 - float(np.sum(prd[sel]) / np.sum(pyd[sel])),
-            "drift_share": float(np.sum(power(d)[sel]) / np.sum(py[sel])),
+            "drift_share": float(np.sum(pd[sel]) / np.sum(py[sel])),
             "residual_over_noise": ratio,
             "unpredictable": ratio < max(UNPREDICTABLE_RATIO, 1 + SCATTER_SIGMA / math.sqrt(n)),
         }

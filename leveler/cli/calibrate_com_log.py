@@ -162,6 +162,10 @@ def run(args: argparse.Namespace) -> int:
     from leveler.procedures.pendulum_fit import fit_pendulum
 
     meas = load_measured(args.log, args.model)
+    if not meas.model_text:
+        raise LogError(f"{args.log}: the log carries no config (imported?): give --model "
+                       "CONFIG with the pendulum's mass and inertia, which turn its response "
+                       "into a distance")
     usable = None if meas.engaged is None else ~meas.engaged
     if usable is not None and not usable.any():
         raise LogError(f"{args.log}: the loop was closed throughout; a drive line is read "

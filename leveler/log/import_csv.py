@@ -78,6 +78,11 @@ class ImportOptions:
                 if not math.isfinite(value) or (what == "--scale" and value == 0):
                     raise LogError(f"{what} {role}={value!r}: must be a finite"
                                    f"{' non-zero' if what == '--scale' else ''} number")
+        names = [self.name(role).lower() for role in ROLES]
+        twice = sorted({n for n in names if names.count(n) > 1})
+        if twice:
+            raise LogError(f"--column: {', '.join(map(repr, twice))} named for two roles; each "
+                           "role needs its own column")
         if self.time_unit not in TIME_UNITS_S and self.time_unit != "iso":
             raise LogError(f"--time-unit {self.time_unit!r}: use one of "
                            f"{', '.join([*TIME_UNITS_S, 'iso'])}")

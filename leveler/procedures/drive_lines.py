@@ -4,12 +4,13 @@ transfer function from command to reading at each, with its uncertainty.
 A lab's stepped sine sweep or square modulation leaves lines in the command that come and go.
 They are found one at a time, strongest first (as CLEAN finds point sources): the highest peak
 of the command's periodogram over its local floor is put in time by demodulating the command
-at its frequency, its frequency refined on that span, the sinusoid fitted there and taken out
-of the command, and the search goes on until the candidates are no longer lines (LINE_Z).
-Each line's reading is then fitted on the settled part of its span, together with every other
-line running there (a square's harmonics) and a polynomial for the slow drift that dominates a
-real tiltmeter's record; the uncertainty is the residual's own spectrum near the line, so a
-drifting, coloured record is not credited with white-noise precision.
+at its frequency, the span kept where its amplitude holds steady, its frequency refined there,
+the sinusoid (and its harmonics) taken out of the command, and the search goes on until the
+candidates are no longer lines (LINE_Z). Each line's reading is then fitted on its span with
+every other line running there (a square's harmonics), a polynomial for the slow drift that
+dominates a real tiltmeter's record and, given the pendulum's resonance, its ringing; the
+uncertainty is what the same fit finds in the residual beside the line, so a drifting,
+coloured record is not credited with white-noise precision.
 """
 
 from __future__ import annotations
@@ -53,7 +54,7 @@ class DriveLine:
     reading_m: complex
     reading_sigma_m: float  # 1 sigma of each quadrature of `reading_m`
     harmonic: int = 1  # n of a square's n-th harmonic
-    waveform: str = "sine"  # "square" when its odd harmonics run with it
+    waveform: str = "sine"  # "square" when harmonics run with it on its span
 
     @property
     def transfer_m_per_v(self) -> complex:
@@ -175,8 +176,8 @@ def _amplitudes(coef: np.ndarray, nfreq: int) -> list[complex]:
 
 def _noise_sigma(res: np.ndarray, t: np.ndarray, f: float) -> float:
     """1 sigma of one quadrature of a fitted amplitude at f: the RMS of what the same fit
-    (sinusoid and drift polynomial) finds in the residual at PROBES frequencies beside f,
-    2 to 8 of the span's bins away on either side. Under a red drift the estimator's noise
+    (sinusoid and drift polynomial) finds in the residual at the 14 frequencies 2 to 8 of
+    the span's bins away from f on either side. Under a red drift the estimator's noise
     is the spectrum leaking in through its sidelobes, not the level at f (a periodogram's
     median there put the low steps of an independent sweep 2-3.6 of their sigmas off)."""
     span = t[-1] - t[0] + (t[1] - t[0])
@@ -288,9 +289,10 @@ def measure(t_s: np.ndarray, u_v: np.ndarray, y_m: np.ndarray, spans: list[_Span
     The reading is fitted on the span less its first `settle_fraction` (the pendulum rings
     after each change), with every other line running there, the drift polynomial and, when
     `ringing` gives the pendulum's (resonance, Q), its free motion: then the span can be
-    used whole. The uncertainty is the residual's spectrum near the line through the fit's
-    own normal matrix, so a line sharing its span with a collinear one (its own ringing
-    near the resonance) is not credited with an orthogonal line's precision."""
+    used whole. The uncertainty is what the same fit finds in the residual beside the line
+    (`_noise_sigma`), scaled by the fit's own normal matrix, so a line sharing its span with
+    a collinear one (its own ringing near the resonance) is not credited with an orthogonal
+    line's precision."""
     t = np.asarray(t_s, float) - float(t_s[0])
     u, y = np.asarray(u_v, float), np.asarray(y_m, float)
     dt = float(np.median(np.diff(t)))

@@ -12,7 +12,9 @@ tau is the command's lag behind its logged value (half a sample for a held DAC o
 a voltage sampled with the reading): fitted, under a prior of one sample interval.
 So the signed centre-of-mass distance L = g J / (m g) needs only the stated mass and inertia,
 and no gain: the zero's frequency is a ratio of lines in one record. A is fitted too, under the
-prior the stated arm and piezo geometry give (when they are stated), so its pull checks them.
+prior the stated arm, sensor calibration and piezo geometry give (when they are stated), so its
+pull checks them. The flexure is kept a spring (k > 0: a hanging pendulum's resonance above its
+zero) and Q within LOG_Q_RANGE.
 
 The fit is weighted least squares on the complex points, started from the best of a grid over
 (g, w0, Q) with A solved exactly at each, so no starting guess from the config can hide the
@@ -135,6 +137,7 @@ def fit_pendulum(lines: list[DriveLine], plant: PlantParams, dt_s: float) -> Pen
     stated_rel = math.sqrt(u.sensor_arm_rel**2 + u.sensor_gain_rel**2 + u.piezo_gain_rel**2
                            + u.support_spacing_rel**2)
     a0, g0, w00, q0 = _grid_start(w, h, sig)
+    a0 = a0 if a0 != 0 else stated  # scales A; only its size matters
     ws = float(np.exp(np.mean(np.log(w))))  # scales the parameters to order one
 
     def unpack(x: np.ndarray) -> tuple[float, float, float, float, float]:
