@@ -18,8 +18,9 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         "or the paper's dual-frequency method on the simulated torsion pendulum (Fig. 11)",
         description="With LOG: find the drive lines in a recording (a stepped sine sweep or "
         "square modulation of the piezo, where the loop was open), estimate the transfer "
-        "function from command to reading at each with its uncertainty (the slow drift fitted "
-        "out, the noise from the residual's own spectrum), and fit the pendulum tiltmeter's "
+        "function from command to reading at each with its uncertainty (the slow drift and the "
+        "pendulum's ringing fitted out, the noise measured beside each line), and fit the "
+        "pendulum tiltmeter's "
         "response A (w^2 + g) / (w0^2 - w^2 + i w w0 / Q): its signed centre-of-mass distance "
         "L = g J / (m g) (a hanging pendulum's zero is at sqrt(m g d / J)), resonance, Q and "
         "scale, with 1-sigma uncertainties. The mass, inertia and stated scale come from the "
