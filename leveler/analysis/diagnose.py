@@ -67,7 +67,7 @@ from leveler.analysis.predict import (
 )
 from leveler.analysis.recalibrate import Recalibration, apply, recalibrate, replayable
 from leveler.analysis.told import red_ceiling
-from leveler.analysis.whittle import ENBW_BINS, Blocks, Whitener, deviance, hann
+from leveler.analysis.whittle import ENBW_BINS, Blocks, Whitener, deviance, hann_psd
 from leveler.analysis.workers import one_blas_thread
 from leveler.sim.effects import EFFECTS, Effect, EffectsParams, ExtraResonance
 from leveler.sim.params import PlantParams
@@ -918,8 +918,7 @@ def gap(meas: Measured, pred: Predictor, span: slice,
     r = residual(meas, pred, span)
     y = meas.y_m[span] - meas.y_m[span].mean()
     dt = meas.dt_s
-    win = hann(len(r))
-    p = np.abs(np.fft.rfft(win * r)) ** 2 * 2 * dt / np.sum(win**2)
+    p = hann_psd(r, dt)
     f = np.fft.rfftfreq(len(r), dt)
     df = f[1] - f[0]
     bands: dict[str, float | None] = {}

@@ -24,7 +24,7 @@ from scipy.signal import lfilter
 
 from leveler.analysis.predict import sensor_noise_m
 from leveler.analysis.told import random_walk_periodogram
-from leveler.analysis.whittle import hann
+from leveler.analysis.whittle import hann_psd
 from leveler.sim.params import PlantParams
 
 EXACT_BINS = 32  # lowest periodogram bins given the random walk's exact windowed level
@@ -101,11 +101,8 @@ def bands(y: np.ndarray, r: np.ndarray, d: np.ndarray, dt_s: float,
           noise: np.ndarray, bands_hz: dict[str, tuple[float, float]]) -> dict[str, Any]:
     """Per band: the measured and residual power, the variance explained as is and with the
     drift `d` set aside from both, and the residual over the model's noise."""
-    win = hann(len(r))
-    scale = 2 * dt_s / float(np.sum(win**2))
-
     def power(x: np.ndarray) -> np.ndarray:
-        return np.abs(np.fft.rfft(win * (x - x.mean()))) ** 2 * scale
+        return hann_psd(x - x.mean(), dt_s)
 
     f = np.fft.rfftfreq(len(r), dt_s)
     py, pr, pyd, prd, pd = power(y), power(r), power(y - d), power(r - d), power(d)

@@ -46,6 +46,13 @@ def hann(n: int) -> np.ndarray:
     return 0.5 - 0.5 * np.cos(2 * np.pi * (np.arange(n) + 0.5) / n)
 
 
+def hann_psd(x: np.ndarray, dt_s: float) -> np.ndarray:
+    """One-sided PSD [x^2/Hz] of `x` through a Hann window, at np.fft.rfftfreq's bins: the
+    per-band figures of a replay (its gap, its residual against the model's noise)."""
+    win = hann(len(x))
+    return np.abs(np.fft.rfft(win * x)) ** 2 * 2 * dt_s / np.sum(win**2)
+
+
 class NoiseSpectrum:
     """S(f) = sum_j c_j B_j(f): white, 1/f^2, 1/f^4, and tilt noise through the pendulum."""
 
