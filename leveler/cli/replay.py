@@ -96,7 +96,7 @@ def report(r: dict[str, Any]) -> str:
              f"{'used' if r['temperature_logged'] else 'not logged'}",
              f"residual RMS {r['rms_m'] * 1e9:.3g} nm; measured variance explained "
              f"{r['variance_explained'] * 100:.1f}%" if r["variance_explained"] is not None
-             else f"residual RMS {r['rms_m'] * 1e9:.3g} nm", "",
+             else f"residual RMS {r['rms_m'] * 1e9:.3g} nm",
              f"less the drift ({r['drift']}, RMS {r['drift_rms_m'] * 1e9:.3g} nm): "
              + (f"{r['variance_explained_less_drift'] * 100:.1f}% explained"
                 if r["variance_explained_less_drift"] is not None else "n/a"), "",
