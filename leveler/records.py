@@ -66,3 +66,18 @@ class Environment:
     seq: int
     t_s: float
     temperature_k: float
+
+
+@dataclass(slots=True)
+class ThrustStand:
+    """One sample of a torsion-pendulum thrust stand recorded beside (or without) the leveler.
+
+    `leveler analyze stiffness LOG` fits the stand's stiffness and its tilt coupling from these;
+    only imported logs carry them so far (`import-csv` roles thrust, displacement, tilt).
+    """
+
+    seq: int
+    t_s: float
+    thrust_n: float
+    displacement_m: float
+    tilt_rad: float  # NaN when the recording has no tilt column

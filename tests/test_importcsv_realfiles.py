@@ -186,7 +186,7 @@ def test_a_row_far_out_of_order_is_a_stray_row(tmp_path: Path,
 
 
 @pytest.mark.parametrize("args,message", [
-    (["--column", "tilt=x"], "unknown column role 'tilt'"),
+    (["--column", "pressure=x"], "unknown column role 'pressure'"),
     (["--column", "sensor"], "write ROLE=VALUE"),
     (["--scale", "sensor=abc"], "'abc' is not a number"),
     (["--scale", "sensor=0"], "must be a finite non-zero number"),

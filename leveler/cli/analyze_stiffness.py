@@ -10,6 +10,8 @@ from dataclasses import asdict, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from leveler.cli import analyze_stiffness_log
+
 if TYPE_CHECKING:
     import numpy as np
 
@@ -33,27 +35,47 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         "stiffness fitted with a free offset: K0 at every tilt. Regimes: r > 0 softening, "
         "-1 < r < 0 stiffening, r < -1 negative stiffness (unstable as a balance). Tilt budget: "
         "the largest |tilt| with gravity torque <= 1/4 of F L, from the measured compliance "
-        "slope. Fits and the regime table use the first K0; takes some seconds per K0 and F.",
-        epilog="Example: leveler analyze stiffness --plot-dir out/ (transfer_1uN.png and "
+        "slope. Fits and the regime table use the first K0; takes some seconds per K0 and F. "
+        "With LOG, the same quantities come from a thrust stand's recording instead (thrust, "
+        "displacement and, for the coupling, tilt channels; import-csv imports them): the "
+        "equation of motion with both torques is fitted to the whole record (f0, Q, the "
+        "start's ringing, the sensor's drift), giving K0 = L^2 / G and M g l_cm = B L / G "
+        "(the displacement sensor's gain cancels, as in the paper's dual-frequency "
+        "calibration), 1-sigma from a block jackknife plus the stated calibrations; r, K and "
+        "the regime on every tilt plateau; the tilt budget.",
+        epilog="Examples: leveler analyze stiffness --plot-dir out/ (transfer_1uN.png and "
         "transfer_0.1uN.png like Figs. 3, 4; stiffness.png, compliance.png, regimes.png). "
+        "leveler analyze stiffness stand.mcap --arm-m 0.25 --arm-sigma-m 0.001 "
+        "--thrust-sigma-rel 0.02 --plot-dir out/ (stiffness_log.png). "
         "Units are SI; the tables show urad and uN.")
-    p.add_argument("--stiffness-nm-per-rad", type=float, nargs="+", default=[0.2, 0.02],
+    p.add_argument("log", nargs="?", metavar="LOG",
+                   help="a thrust stand's recording (MCAP, e.g. from import-csv) to analyse "
+                   "instead of the simulated sweep")
+    p.add_argument("--stiffness-nm-per-rad", type=float, nargs="+", default=None,
                    metavar="K0", help="pivot stiffnesses K0 [N m/rad] (default: 0.2 0.02, "
                    "the paper's); the first gets the fits")
-    p.add_argument("--thrust-n", type=float, nargs="+", default=[1e-6, 1e-7], metavar="F",
+    p.add_argument("--thrust-n", type=float, nargs="+", default=None, metavar="F",
                    help="square-wave thrust amplitudes [N] (default: 1e-6 1e-7, the paper's); "
-                   "the first gets the Fig. 5/6 fits")
-    p.add_argument("--max-tilt-rad", type=float, default=20e-6,
-                   help="sweep pitch from -this to +this [rad] (default: %(default)g)")
-    p.add_argument("--tilt-step-rad", type=float, default=2.5e-6,
-                   help="sweep step [rad] (default: %(default)g)")
-    p.add_argument("--seed", type=int, default=0, help="sensor-noise seed (default: 0)")
+                   "the first gets the Fig. 5/6 fits. With LOG: the one F that r refers to "
+                   "(default: the thrust channel's step, 98th minus 2nd percentile)")
+    p.add_argument("--max-tilt-rad", type=float, default=None,
+                   help="sweep pitch from -this to +this [rad] (default: "
+                   f"{_SWEEP['max_tilt_rad']:g})")
+    p.add_argument("--tilt-step-rad", type=float, default=None,
+                   help=f"sweep step [rad] (default: {_SWEEP['tilt_step_rad']:g})")
+    p.add_argument("--seed", type=int, default=None, help="sensor-noise seed (default: 0)")
     p.add_argument("--json", action="store_true",
                    help="print one JSON object (model, identification, sweeps with points, "
                    "fits, regimes_seen, tilt_budget_rad)")
     p.add_argument("--plot-dir", default=None, metavar="DIR",
                    help="write the figures (PNG) into DIR")
+    analyze_stiffness_log.add_arguments(p)
     p.set_defaults(func=run)
+
+
+#: The simulated sweep's defaults; None on the command line, so that LOG can refuse them.
+_SWEEP: dict = {"stiffness_nm_per_rad": [0.2, 0.02], "thrust_n": [1e-6, 1e-7],
+                "max_tilt_rad": 20e-6, "tilt_step_rad": 2.5e-6, "seed": 0}
 
 
 def _num(x: float) -> float | None:
@@ -325,7 +347,16 @@ def run(args: argparse.Namespace) -> int:
     from leveler.procedures import stiffness as st
     from leveler.sim.torsion import TorsionParams
 
+    if args.log is not None:
+        return analyze_stiffness_log.run(args)
+    for key, default in _SWEEP.items():
+        if getattr(args, key) is None:
+            setattr(args, key, default)
+    log_only = analyze_stiffness_log.given_without_log(args)
     try:
+        if log_only:
+            raise ValueError(f"{', '.join(log_only)}: only with a LOG (a thrust stand's "
+                             "recording)")
         tilts = st.sweep_tilts(args.max_tilt_rad, args.tilt_step_rad)
         base = TorsionParams(stiffness_nm_per_rad=args.stiffness_nm_per_rad[0])
         result = analyze(base, args.stiffness_nm_per_rad, args.thrust_n, tilts, args.seed)

@@ -17,8 +17,11 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         "header holds, or --delimiter); blank lines and lines starting with # are skipped; "
         "the first other line is the header. Columns are found by name (case-insensitive, "
         "any order): the time t_s, the actuator voltage actuator_V, the displacement at the "
-        "pendulum end sensor_m and optionally the table temperature temperature_K, or the "
-        "names --column gives; other columns are ignored. Time is converted by --time-unit, "
+        "pendulum end sensor_m and optionally the table temperature temperature_K; or, for "
+        "a torsion-pendulum thrust stand (leveler analyze stiffness LOG), its thrust "
+        "thrust_N, displacement displacement_m and optionally the base tilt tilt_rad "
+        "(with or without the leveler's columns); or the names --column gives; other "
+        "columns are ignored. Time is converted by --time-unit, "
         "each value as raw x --scale + --offset into SI; without them values are SI as "
         "given. At least 16 rows. A bad row (reported by line number) fails the import "
         "unless --skip-bad; a line repeating the header is skipped and reported. The time "
@@ -33,8 +36,9 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--out", required=True, metavar="LOG.mcap", help="the MCAP log to write")
     p.add_argument("--column", action="append", metavar="ROLE=NAME",
                    help="the header name of a column, ROLE one of t, actuator, sensor, "
-                   "temperature (repeat per column; default names t_s, actuator_V, sensor_m, "
-                   "temperature_K)")
+                   "temperature, thrust, displacement, tilt (repeat per column; default "
+                   "names t_s, actuator_V, sensor_m, temperature_K, thrust_N, "
+                   "displacement_m, tilt_rad)")
     p.add_argument("--time-unit", default="s",
                    choices=("s", "ms", "us", "min", "h", "days", "iso"),
                    help="unit of the time column: s, ms, us, min, h, days (e.g. MJD), or iso "
@@ -42,7 +46,8 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
                    "offset is given) (default: s)")
     p.add_argument("--scale", action="append", metavar="ROLE=FACTOR",
                    help="multiply a column by FACTOR into SI, e.g. sensor=1.75e-9 for ADC "
-                   "counts of 1.75 nm (V for actuator, m for sensor, K for temperature)")
+                   "counts of 1.75 nm, thrust=1e-6 for uN (V for actuator, m for sensor and "
+                   "displacement, K for temperature, N for thrust, rad for tilt)")
     p.add_argument("--offset", action="append", metavar="ROLE=VALUE",
                    help="add VALUE after scaling, e.g. temperature=273.15 for degrees C")
     p.add_argument("--delimiter", default="auto",

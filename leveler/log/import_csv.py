@@ -27,13 +27,19 @@ from leveler import __version__
 from leveler.errors import LogError
 from leveler.log.resample import Resampling, resample
 from leveler.log.writer import LogWriter
-from leveler.records import Environment, Event, Sample
+from leveler.records import Environment, Event, Sample, ThrustStand
 
 #: What each column is for, and the header name sought for it unless `--column` says.
-ROLES = ("t", "actuator", "sensor", "temperature")
+ROLES = ("t", "actuator", "sensor", "temperature", "thrust", "displacement", "tilt")
 DEFAULT_NAMES = {"t": "t_s", "actuator": "actuator_V", "sensor": "sensor_m",
-                 "temperature": "temperature_K"}
-UNITS = {"actuator": "V", "sensor": "m", "temperature": "K"}
+                 "temperature": "temperature_K", "thrust": "thrust_N",
+                 "displacement": "displacement_m", "tilt": "tilt_rad"}
+UNITS = {"actuator": "V", "sensor": "m", "temperature": "K", "thrust": "N", "displacement": "m",
+         "tilt": "rad"}
+#: The columns that make a log: the leveler's loop (its samples), or a torsion-pendulum thrust
+#: stand's (`leveler analyze stiffness LOG`); a file needs one pair or both.
+LEVELER_PAIR = ("actuator", "sensor")
+STAND_PAIR = ("thrust", "displacement")
 #: Seconds per unit of the time column (`--time-unit`); "iso" is an ISO 8601 date-time.
 TIME_UNITS_S = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "min": 60.0, "h": 3600.0, "days": 86400.0}
 DELIMITERS = {"comma": ",", "semicolon": ";", "tab": "\t", "space": None}
@@ -148,9 +154,7 @@ class CsvData:
     ignored: list[str]  # names of columns not imported
     options: ImportOptions = field(default_factory=ImportOptions)
     t_s: array = field(default_factory=lambda: array("d"))
-    actuator_v: array = field(default_factory=lambda: array("d"))
-    sensor_m: array = field(default_factory=lambda: array("d"))
-    temperature_k: array | None = None
+    values: dict[str, array] = field(default_factory=dict)  # role -> SI column, as found
     lines: array = field(default_factory=lambda: array("q"))  # line number of each row
     bad: list[BadRow] = field(default_factory=list)
     headers_repeated: list[int] = field(default_factory=list)  # lines repeating the header
@@ -165,6 +169,9 @@ class CsvData:
     def duration_s(self) -> float:
         return self.t_s[-1] - self.t_s[0] if self.rows else 0.0
 
+    def column(self, role: str) -> array | None:
+        return self.values.get(role)
+
 
 @dataclass
 class _Columns:
@@ -172,9 +179,7 @@ class _Columns:
 
     count: int
     t: int
-    v: int
-    s: int
-    k: int | None
+    index: dict[str, int]  # value role -> field index, in ROLES order
     ignored: list[str]
     sep: str | None  # str.split's separator (None: runs of whitespace)
     time: Callable[[str], float]  # the time field as a number (days, s, ... as written)
@@ -260,18 +265,31 @@ def _columns(path: Path, lineno: int, header: str, options: ImportOptions) -> _C
             found[role] = i
         else:
             ignored.append(name or f"(unnamed column {i + 1})")
-    missing = [options.name(r) for r in ROLES[:3] if r not in found]
-    if "temperature" in options.columns and "temperature" not in found:
-        missing.append(options.name("temperature"))
+    missing = [options.name(r) for r in _needed(found) if r not in found]
+    missing += [options.name(r) for r in options.columns if r not in found]
     if missing:
+        missing = list(dict.fromkeys(missing))
         raise LogError(
             f"{path}: line {lineno}: column{'s' if len(missing) > 1 else ''} "
             f"{', '.join(missing)} missing; the header found is {header.strip()!r} (needed: "
-            "time, actuator and sensor columns, named t_s, actuator_V, sensor_m unless "
-            "--column t=NAME etc. says; see docs/log-format.md)")
+            "a time column and the leveler's actuator and sensor columns, or a thrust "
+            "stand's thrust and displacement columns, or both; named t_s, actuator_V, "
+            "sensor_m, thrust_N, displacement_m unless --column t=NAME etc. says; see "
+            "docs/log-format.md)")
+    if "tilt" in found and "thrust" not in found:
+        raise LogError(f"{path}: line {lineno}: a tilt column ({options.name('tilt')}) goes "
+                       "with a thrust stand's thrust and displacement columns, which the "
+                       f"header {header.strip()!r} lacks")
     time = _iso_seconds if options.time_unit == "iso" else float
-    return _Columns(len(names), found["t"], found["actuator"], found["sensor"],
-                    found.get("temperature"), ignored, sep, time)
+    index = {role: found[role] for role in ROLES[1:] if role in found}
+    return _Columns(len(names), found["t"], index, ignored, sep, time)
+
+
+def _needed(found: dict[str, int]) -> tuple[str, ...]:
+    """The time and whichever pair the header has begun (the leveler's when neither)."""
+    stand = any(r in found for r in STAND_PAIR)
+    leveler = any(r in found for r in LEVELER_PAIR) or not stand
+    return ("t", *(LEVELER_PAIR if leveler else ()), *(STAND_PAIR if stand else ()))
 
 
 def _field_count(n: int, ncols: int) -> str:
@@ -280,10 +298,7 @@ def _field_count(n: int, ncols: int) -> str:
 
 def _why_bad(parts: list[str], cols: _Columns, options: ImportOptions) -> str:
     """Why a row that failed the fast path was refused (slow; only for bad rows)."""
-    named = [("t", cols.t), ("actuator", cols.v), ("sensor", cols.s)]
-    if cols.k is not None:
-        named.append(("temperature", cols.k))
-    for role, i in named:
+    for role, i in [("t", cols.t), *cols.index.items()]:
         name, text = options.name(role), parts[i].strip()
         try:
             value = cols.time(text) if role == "t" else float(text)
@@ -307,10 +322,10 @@ def _parse_rows(data: CsvData, lines: Iterator[tuple[int, str]], cols: _Columns,
     MAX_ROWS_BACK rows out of order is kept (the resampling sorts it in and reports it).
     A line repeating the header (a logger restarted) is skipped and noted.
     """
-    ncols, it, iv, is_, ik, sep = cols.count, cols.t, cols.v, cols.s, cols.k, cols.sep
-    time = cols.time
-    ts, vs, ss, ls = data.t_s, data.actuator_v, data.sensor_m, data.lines
-    ks = data.temperature_k if data.temperature_k is not None else array("d")
+    ncols, it, sep, time = cols.count, cols.t, cols.sep, cols.time
+    index = list(cols.index.values())
+    appends = [data.values[role].append for role in cols.index]
+    ts, ls = data.t_s, data.lines
     bad = data.bad
     isfinite = math.isfinite
     tname = data.options.name("t")
@@ -328,16 +343,14 @@ def _parse_rows(data: CsvData, lines: Iterator[tuple[int, str]], cols: _Columns,
             continue
         try:
             t = time(parts[it])
-            v = float(parts[iv])
-            s = float(parts[is_])
-            k = 0.0 if ik is None else float(parts[ik])
+            values = [float(parts[i]) for i in index]
         except ValueError:
             if line.strip() == header:
                 data.headers_repeated.append(lineno)
             elif not _skippable(line):
                 bad.append(BadRow(lineno, _why_bad(parts, cols, data.options)))
             continue
-        if not (isfinite(t) and isfinite(v) and isfinite(s) and isfinite(k)):
+        if not (isfinite(t) and all(map(isfinite, values))):
             bad.append(BadRow(lineno, _why_bad(parts, cols, data.options)))
             continue
         if t <= last_t:
@@ -350,11 +363,9 @@ def _parse_rows(data: CsvData, lines: Iterator[tuple[int, str]], cols: _Columns,
         else:
             last_t, last_line, last_text = t, lineno, parts[it].strip()
         ts.append(t)
-        vs.append(v)
-        ss.append(s)
+        for append, value in zip(appends, values, strict=True):
+            append(value)
         ls.append(lineno)
-        if ik is not None:
-            ks.append(k)
 
 
 def listing(bad: list[BadRow]) -> str:
@@ -370,9 +381,8 @@ def _to_si(data: CsvData) -> None:
     if opts.time_unit != "iso" and opts.time_unit != "s":
         t = np.frombuffer(data.t_s, dtype=np.float64)
         t *= TIME_UNITS_S[opts.time_unit]
-    for role, column in (("actuator", data.actuator_v), ("sensor", data.sensor_m),
-                         ("temperature", data.temperature_k)):
-        if column is not None and opts.converted(role):
+    for role, column in data.values.items():
+        if opts.converted(role):
             x = np.frombuffer(column, dtype=np.float64)
             x *= opts.scale.get(role, 1.0)
             x += opts.offset.get(role, 0.0)
@@ -413,9 +423,8 @@ def read_csv(path: str | Path, *, skip_bad: bool = False,
             break
     else:
         raise LogError(f"{path}: no header line (the file is empty or only comments)")
-    data = CsvData(path, header, cols.ignored, options)
-    if cols.k is not None:
-        data.temperature_k = array("d")
+    data = CsvData(path, header, cols.ignored, options,
+                   values={role: array("d") for role in cols.index})
     _parse_rows(data, lines, cols, header)
     if data.bad and not skip_bad:
         raise LogError(f"{path}: {len(data.bad)} bad row{'s' if len(data.bad) > 1 else ''} "
@@ -433,16 +442,12 @@ def read_csv(path: str | Path, *, skip_bad: bool = False,
 
 def _resample(data: CsvData) -> None:
     """Replace the rows by their resampling (`leveler.log.resample`) and keep its report."""
-    columns = {"actuator_v": data.actuator_v, "sensor_m": data.sensor_m}
-    if data.temperature_k is not None:
-        columns["temperature_k"] = data.temperature_k
     grid, out, report = resample(
         np.frombuffer(data.t_s, dtype=np.float64),
-        {k: np.frombuffer(v, dtype=np.float64) for k, v in columns.items()},
+        {k: np.frombuffer(v, dtype=np.float64) for k, v in data.values.items()},
         np.frombuffer(data.lines, dtype=np.int64), data.options.max_gap_s, str(data.path))
     data.t_s = array("d", grid.tobytes())
-    for k, v in out.items():
-        setattr(data, k, array("d", v.tobytes()))
+    data.values = {k: array("d", v.tobytes()) for k, v in out.items()}
     data.lines = array("q")  # rows of the file no longer map onto samples one to one
     data.interval_s = report.interval_s
     data.resampling = report
@@ -474,8 +479,10 @@ def _write(data: CsvData, dest: Path, out: Path) -> None:
     if report is not None:
         metadata["resampled"] = report.summary()
     times = _log_times(np.frombuffer(data.t_s, dtype=np.float64), data.path)
-    ks = data.temperature_k
-    writer = LogWriter(dest, environment=ks is not None, metadata=metadata)
+    ks, vs, ss = data.column("temperature"), data.column("actuator"), data.column("sensor")
+    fs, xs, tilts = data.column("thrust"), data.column("displacement"), data.column("tilt")
+    writer = LogWriter(dest, environment=ks is not None, thrust_stand=fs is not None,
+                       metadata=metadata)
     try:
         writer.event(Event(data.t_s[0], "start", "import-csv", {"csv": path}), times[0])
         gaps = report.gaps if report is not None else []
@@ -487,21 +494,27 @@ def _write(data: CsvData, dest: Path, out: Path) -> None:
                 "length_s": gap.length_s, "samples_interpolated": gap.filled}), ns)
         filled = report.filled if report is not None else np.zeros(data.rows, bool)
         sample, environment, wait = writer.sample, writer.environment, writer.wait_drained
-        rows = zip(data.t_s, data.actuator_v, data.sensor_m, times, filled.tolist(), strict=True)
-        for i, (t, v, s, ns, made) in enumerate(rows):
-            state = "interpolated" if made else "imported"
-            sample(Sample(i, t, 0, s, 0, 0.0, -s, 0.0, 0.0, 0.0, v, v, False, state), ns)
+        stand = writer.thrust_stand
+        for i, (t, ns, made) in enumerate(zip(data.t_s, times, filled.tolist(), strict=True)):
+            if ss is not None:
+                v, s = vs[i], ss[i]
+                state = "interpolated" if made else "imported"
+                sample(Sample(i, t, 0, s, 0, 0.0, -s, 0.0, 0.0, 0.0, v, v, False, state), ns)
             if ks is not None:
                 environment(Environment(i, t, ks[i]), ns)
+            if fs is not None:
+                stand(ThrustStand(i, t, fs[i], xs[i], math.nan if tilts is None else tilts[i]),
+                      ns)
             if i % _DRAIN_EVERY == _DRAIN_EVERY - 1:
                 wait(max_backlog=_MAX_BACKLOG)
         writer.event(Event(data.t_s[-1], "stop", "import-csv", {"csv": path, "rows": data.rows}),
                      times[-1])
     finally:
         writer.close()
-    if writer.dropped or writer.samples_written != data.rows:
+    expected = data.rows if ss is not None else 0
+    if writer.dropped or writer.samples_written != expected:
         raise LogError(f"{out}: {writer.dropped} records dropped, {writer.samples_written} of "
-                       f"{data.rows} samples written")
+                       f"{expected} samples written")
 
 
 def write_log(data: CsvData, out: str | Path, *, force: bool = False) -> None:
@@ -544,13 +557,15 @@ def _duration(seconds: float) -> str:
 
 def summary(data: CsvData, out: str | Path) -> str:
     """One line saying what the log holds, how it was converted and what was left out."""
-    temperature = "yes" if data.temperature_k is not None else "no"
+    temperature = "yes" if data.column("temperature") is not None else "no"
+    stand = ("thrust stand: " + ", ".join(r for r in (*STAND_PAIR, "tilt") if r in data.values)
+             + ", " if "thrust" in data.values else "")
     ignored = ", ".join(data.ignored) or "none"
     rows = data.resampling.rows_in if data.resampling is not None else data.rows
     resampled = f"; {data.resampling.summary()}" if data.resampling is not None else ""
     return (f"imported {rows} rows from {data.path} into {out}: "
             f"{_duration(data.duration_s)} at {1.0 / data.interval_s:.6g} Hz, "
-            f"{data.options.describe()}, temperature: {temperature}, ignored columns: "
+            f"{data.options.describe()}, temperature: {temperature}, {stand}ignored columns: "
             f"{ignored}, skipped bad rows: {len(data.bad)}, repeated headers skipped: "
             f"{len(data.headers_repeated)}{resampled}")
 

@@ -33,11 +33,12 @@ from mcap.records import Attachment, Channel, Header, McapRecord, Metadata, Sche
 from mcap.writer import CompressionType, Writer
 
 from leveler.errors import LogError
-from leveler.records import Environment, Event, Sample, Truth
+from leveler.records import Environment, Event, Sample, ThrustStand, Truth
 
 SAMPLE_TOPIC = "/leveler/sample"
 TRUTH_TOPIC = "/leveler/truth"
 ENVIRONMENT_TOPIC = "/leveler/environment"
+THRUST_STAND_TOPIC = "/leveler/thrust_stand"
 EVENT_TOPIC = "/leveler/event"
 METADATA_NAME = "leveler"
 
@@ -72,6 +73,7 @@ class LogData:
     # Why the log is incomplete ("" when complete): tells a crash cut from corruption.
     stop_reason: str = ""
     environment: dict[str, np.ndarray] = field(default_factory=dict)
+    thrust_stand: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def _decompress(body: bytes) -> bytes:
@@ -244,7 +246,7 @@ def read_log(path: str | Path) -> LogData:
     """Read every readable message of a log; a truncated file gives complete=False."""
     scan = _Scan(path)
     tables = {SAMPLE_TOPIC: _Table(Sample), TRUTH_TOPIC: _Table(Truth), EVENT_TOPIC: _Table(Event),
-              ENVIRONMENT_TOPIC: _Table(Environment)}
+              ENVIRONMENT_TOPIC: _Table(Environment), THRUST_STAND_TOPIC: _Table(ThrustStand)}
     by_channel: dict[int, _Table] = {}
     metadata: dict[str, dict[str, str]] = {}
     read = 0
@@ -272,6 +274,8 @@ def read_log(path: str | Path) -> LogData:
         truth, env = tables[TRUTH_TOPIC], tables[ENVIRONMENT_TOPIC]
         truth_cols = truth.result() if truth in by_channel.values() else {}
         env_cols = env.result() if env in by_channel.values() else {}
+        stand = tables[THRUST_STAND_TOPIC]
+        stand_cols = stand.result() if stand in by_channel.values() else {}
     except orjson.JSONDecodeError as e:
         raise LogError(f"{scan.path}: a message is not valid JSON: {e}") from e
     except (KeyError, TypeError, ValueError) as e:  # checksums passed: not what we write
@@ -292,6 +296,7 @@ def read_log(path: str | Path) -> LogData:
         complete=complete,
         stop_reason=reason,
         environment=env_cols,
+        thrust_stand=stand_cols,
     )
 
 
@@ -362,6 +367,7 @@ __all__ = [
     "EVENT_TOPIC",
     "METADATA_NAME",
     "SAMPLE_TOPIC",
+    "THRUST_STAND_TOPIC",
     "TRUTH_TOPIC",
     "LogData",
     "LogError",

@@ -49,10 +49,11 @@ from leveler.log.reader import (
     EVENT_TOPIC,
     METADATA_NAME,
     SAMPLE_TOPIC,
+    THRUST_STAND_TOPIC,
     TRUTH_TOPIC,
     LogError,
 )
-from leveler.records import Environment, Event, Sample, Truth
+from leveler.records import Environment, Event, Sample, ThrustStand, Truth
 from leveler.rt import background_thread
 
 _log = logging.getLogger(__name__)
@@ -116,6 +117,13 @@ _ENVIRONMENT_FIELDS: dict[str, tuple[str, str]] = {
     "seq": ("integer", "cycle number of the matching sample"),
     "t_s": ("number", "loop time since start [s]"),
     "temperature_k": ("number", "measured table temperature [K]" + _NULL),
+}
+_THRUST_STAND_FIELDS: dict[str, tuple[str, str]] = {
+    "seq": ("integer", "row number of the recording"),
+    "t_s": ("number", "time since start [s]"),
+    "thrust_n": ("number", "thrust or calibration force on the torsion pendulum [N]" + _NULL),
+    "displacement_m": ("number", "torsion-pendulum displacement at the sensor [m]" + _NULL),
+    "tilt_rad": ("number", "base pitch tilt [rad] (null when not recorded)"),
 }
 _EVENT_FIELDS: dict[str, tuple[str, str]] = {
     "t_s": ("number", "loop time since start [s]"),
@@ -352,6 +360,7 @@ class LogWriter:
         compression: str = "zstd",
         truth: bool = False,
         environment: bool = False,
+        thrust_stand: bool = False,
         chunk_size: int = 1 << 20,
         max_backlog: int = 600_000,
     ) -> None:
@@ -381,6 +390,10 @@ class LogWriter:
             self._env_ch = (
                 self._channel(ENVIRONMENT_TOPIC, "leveler.Environment", _ENVIRONMENT_FIELDS)
                 if environment else None
+            )
+            self._stand_ch = (
+                self._channel(THRUST_STAND_TOPIC, "leveler.ThrustStand", _THRUST_STAND_FIELDS)
+                if thrust_stand else None
             )
             self._event_ch = self._channel(EVENT_TOPIC, "leveler.Event", _EVENT_FIELDS)
             self._mcap.metadata(METADATA_NAME, meta)
@@ -489,21 +502,24 @@ class LogWriter:
 
     def truth(self, t: Truth, log_time_ns: int) -> None:
         """Queue one simulation truth record (needs truth=True)."""
-        if self._error is not None or self._closed or self._truth_ch is None:
-            self._raise()
-        if len(self._queue) >= self._max_backlog:
-            self._dropped += 1
-            return
-        self._queue.append((self._truth_ch, t, log_time_ns))
+        self._put(self._truth_ch, t, log_time_ns)
 
     def environment(self, e: Environment, log_time_ns: int) -> None:
         """Queue one environment record (needs environment=True)."""
-        if self._error is not None or self._closed or self._env_ch is None:
+        self._put(self._env_ch, e, log_time_ns)
+
+    def thrust_stand(self, r: ThrustStand, log_time_ns: int) -> None:
+        """Queue one thrust-stand record (needs thrust_stand=True)."""
+        self._put(self._stand_ch, r, log_time_ns)
+
+    def _put(self, channel: int | None, record: object, log_time_ns: int) -> None:
+        """An optional topic's record: dropped (and counted) only when the backlog is full."""
+        if self._error is not None or self._closed or channel is None:
             self._raise()
         if len(self._queue) >= self._max_backlog:
             self._dropped += 1
             return
-        self._queue.append((self._env_ch, e, log_time_ns))
+        self._queue.append((channel, record, log_time_ns))
 
     def event(self, e: Event, log_time_ns: int) -> None:
         """Queue one event; events are rare and never dropped."""
@@ -555,8 +571,8 @@ class LogWriter:
             raise LogError(f"{self._path}: log writer failed: {self._error!r}") from self._error
         if self._closed:
             raise LogError(f"{self._path}: log is closed")
-        raise LogError(f"{self._path}: topic not enabled (LogWriter(truth=True) or "
-                       "LogWriter(environment=True))")
+        raise LogError(f"{self._path}: topic not enabled (LogWriter(truth=True), "
+                       "environment=True or thrust_stand=True)")
 
     # -- consumer side: the writer thread ----------------------------------------------
 

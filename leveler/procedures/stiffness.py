@@ -92,7 +92,7 @@ def thrust_run(p: TorsionParams, thrust_n: float, tilt_rad: float, rng: np.rando
     return thrust, p.arm_m * theta + sensor_noise(rng, n, noise_m_per_rthz, fs_hz)
 
 
-def _unit_response(thrust_n: np.ndarray, dt_s: float, f0_hz: float, q: float) -> np.ndarray:
+def unit_response(thrust_n: np.ndarray, dt_s: float, f0_hz: float, q: float) -> np.ndarray:
     """Exact ZOH response of w0^2 / (s^2 + s w0/Q + w0^2) from rest (underdamped, Q > 1/2).
 
     Closed form from the poles p1,2 instead of cont2discrete: the fit evaluates this a few
@@ -140,7 +140,7 @@ def identify_transfer(thrust_n: np.ndarray, displacement_m: np.ndarray, fs_hz: f
     log_q = (math.log(_Q_BOUNDS[0]), math.log(_Q_BOUNDS[1]))
 
     def basis(x: np.ndarray) -> np.ndarray:
-        unit = _unit_response(thrust, dt, math.exp(x[0]), math.exp(x[1]))
+        unit = unit_response(thrust, dt, math.exp(x[0]), math.exp(x[1]))
         return np.column_stack((unit, np.ones_like(unit)))
 
     def residual(x: np.ndarray) -> np.ndarray:
