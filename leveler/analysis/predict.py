@@ -82,6 +82,9 @@ def load_measured(path: str | Path, model: str | Path | None = None) -> Measured
     n = len(s.get("t_s", ()))
     if n < 1000:
         early = f" (the log is incomplete: {data.stop_reason})" if not data.complete else ""
+        if not n and len(data.thrust_stand.get("t_s", ())):
+            early = (": it holds a thrust stand's channels only (leveler analyze stiffness "
+                     "LOG; leveler asd LOG --channel displacement_m)")
         raise LogError(f"{path}: {n} samples; replay needs at least 1000{early}")
     seq = s["seq"]
     gaps = np.flatnonzero(np.diff(seq) != 1)

@@ -30,7 +30,9 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         "method (Troebs & Heinzel 2006), which keeps many averages at high frequency and "
         "still reaches 0.1 mHz in a long log. Channels: any numeric field of the sample "
         "topic (sensor_m, applied_v, error_m, ...) or, in simulated logs, the truth topic "
-        "(tilt_rad, thermal_tilt_rad, pendulum_rad, ...). Values a daemon logged as null "
+        "(tilt_rad, thermal_tilt_rad, pendulum_rad, ...), in imported logs the measured "
+        "surroundings (temperature_k) and a thrust stand's channels (displacement_m, "
+        "thrust_n, tilt_rad). Values a daemon logged as null "
         "(held bad readings, driver errors) are bridged by linear interpolation if they are "
         "at most 1% of the record and no gap is longer than 10 s, and cut off if they are at "
         "its start or end; a note on stderr says how many. Beyond that the log is refused.")
@@ -48,14 +50,15 @@ def channel(log: LogData, name: str, path: str) -> tuple[np.ndarray, float]:
     """The named numeric series of a log and its sample rate (from the loop times)."""
     import numpy as np
 
-    for table in (log.samples, log.truth):
-        if name in table:
+    tables = (log.samples, log.truth, log.thrust_stand, log.environment)
+    for table in tables:
+        if name in table and len(table[name]):
             values = np.asarray(table[name])
             t = np.asarray(table["t_s"], dtype=float)
             break
     else:
-        names = sorted(k for tab in (log.samples, log.truth) for k, v in tab.items()
-                       if np.asarray(v).dtype.kind in "fi")
+        names = sorted({k for tab in tables for k, v in tab.items()
+                        if len(v) and np.asarray(v).dtype.kind in "fi"})
         raise LogError(f"{path}: no channel {name!r}; numeric channels: {', '.join(names)}")
     if values.dtype.kind not in "fi":
         raise LogError(f"{path}: channel {name!r} is not numeric")
