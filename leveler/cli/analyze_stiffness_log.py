@@ -99,13 +99,15 @@ def report(fit: StandFit, path: str) -> str:
     tilt = ("no tilt column" if fit.tilt_range_rad is None else
             f"tilt {fit.tilt_range_rad[0] * 1e6:+.2f} .. {fit.tilt_range_rad[1] * 1e6:+.2f} urad")
     drift = f"poly:{fit.drift_order}" if fit.drift_order >= 0 else "none"
+    hold = ("joined by lines between samples" if fit.hold == "foh" else
+            "held from sample to sample")
     lines = [
         f"Thrust stand recording {path}: {fit.duration_s / 3600:.3g} h, thrust step F = "
         f"{fit.thrust_n * 1e6:.4g} uN, {tilt}, arm L = {fit.arm_m:g} m",
         "Fitted to the whole record: J theta'' + lambda theta' + K0 theta = F L + M g sin(tilt) "
         f"l_cm, with the start's ringing and the sensor drift ({drift})",
         f"  pendulum: f0 = {fit.natural_frequency_hz:.4g} Hz, Q = {fit.quality_factor:.3g}; "
-        f"residual {fit.rms_residual_m * 1e9:.3g} nm rms",
+        f"residual {fit.rms_residual_m * 1e9:.3g} nm rms; forces {hold} (fits better)",
         f"  stiffness K0 = {k0:.5g} +- {sk:.2g} N m/rad (compliance 1/K0 = {1 / k0:.5g} "
         "rad/(N m))",
     ]
@@ -120,8 +122,8 @@ def report(fit: StandFit, path: str) -> str:
                f"{abs(sens) + 2 * ss:.2g} uN m/urad (2 sigma)")
     lines.append(f"  tilt coupling M g l_cm = {sens:.4g} +- {ss:.2g} uN m/urad ({verdict})")
     if fit.plateaus:
-        lines += ["", "Per tilt plateau (paper Figs. 5, 6): r = M g sin(tilt) l_cm / (F L), "
-                  "K = K0 / (1 + r)",
+        lines += ["", "Per tilt plateau (paper Figs. 5, 6; times from the first sample): r = "
+                  "M g sin(tilt) l_cm / (F L), K = K0 / (1 + r)",
                   f"  {'tilt [urad]':>11} {'from [s]':>9} {'to [s]':>9} {'r (measured)':>13} "
                   f"{'r (fit)':>8} {'K [N m/rad]':>12}  regime"]
         for pl in fit.plateaus:

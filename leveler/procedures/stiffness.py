@@ -92,8 +92,12 @@ def thrust_run(p: TorsionParams, thrust_n: float, tilt_rad: float, rng: np.rando
     return thrust, p.arm_m * theta + sensor_noise(rng, n, noise_m_per_rthz, fs_hz)
 
 
-def unit_response(thrust_n: np.ndarray, dt_s: float, f0_hz: float, q: float) -> np.ndarray:
-    """Exact ZOH response of w0^2 / (s^2 + s w0/Q + w0^2) from rest (underdamped, Q > 1/2).
+def unit_response(thrust_n: np.ndarray, dt_s: float, f0_hz: float, q: float,
+                  hold: str = "zoh") -> np.ndarray:
+    """Exact response of w0^2 / (s^2 + s w0/Q + w0^2) from rest (underdamped, Q > 1/2) to
+    the samples held constant over each interval (hold="zoh", as the simulator drives it) or
+    joined by straight lines (hold="foh", a recording of a continuous force: a step between
+    two samples lands, on average, where the ramp puts it, not half an interval late).
 
     Closed form from the poles p1,2 instead of cont2discrete: the fit evaluates this a few
     hundred times, and scipy's expm on a tiny matrix costs milliseconds when BLAS threads
@@ -103,6 +107,8 @@ def unit_response(thrust_n: np.ndarray, dt_s: float, f0_hz: float, q: float) -> 
     w0 = 2 * math.pi * f0_hz
     p1 = complex(-w0 / (2 * q), w0 * math.sqrt(1 - 1 / (4 * q * q)))
     p2 = p1.conjugate()
+    if hold == "foh":
+        return _foh_response(np.asarray(thrust_n, dtype=float), dt_s, p1, w0)
     c1 = w0**2 / (p1 * (p1 - p2))
     e1, e2 = np.exp(p1 * dt_s), np.exp(p2 * dt_s)
     # numerator of (1 - 1/z) [1/(1 - 1/z) + c1/(1 - e1/z) + c2/(1 - e2/z)] over (1-e1/z)(1-e2/z)
@@ -110,6 +116,17 @@ def unit_response(thrust_n: np.ndarray, dt_s: float, f0_hz: float, q: float) -> 
     b2 = e1 * e2 + c1 * e2 + c1.conjugate() * e1
     a = [1.0, -(e1 + e2).real, (e1 * e2).real]
     return np.asarray(lfilter([0.0, b1.real, b2.real], a, thrust_n))
+
+
+def _foh_response(u: np.ndarray, dt_s: float, p1: complex, w0: float) -> np.ndarray:
+    """Modal form: w0^2 / ((s - p1)(s - p2)) = 2 Re(r / (s - p1)), r = w0^2 / (p1 - p2); for
+    u linear over a step, x' = p x + u gives x[k+1] = E x[k] + b0 u[k] + b1 u[k+1] with
+    E = e^(p dt), b1 = (E - 1) / (p^2 dt) - 1 / p and b0 = (E - 1) / p - b1."""
+    e = complex(np.exp(p1 * dt_s))
+    b1 = (e - 1) / (p1 * p1 * dt_s) - 1 / p1
+    b0 = (e - 1) / p1 - b1
+    x = lfilter([b1, b0], [1.0, -e], u.astype(complex))
+    return 2 * (w0**2 / (2j * p1.imag) * x).real
 
 
 def _project(y: np.ndarray, basis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

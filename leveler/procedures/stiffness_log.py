@@ -47,6 +47,7 @@ from leveler.procedures.stiffness import (
 )
 
 JACKKNIFE_BLOCKS = 20
+HOLDS = ("foh", "zoh")  # forces joined by lines between samples, or held (stiffness.unit_response)
 MIN_SAMPLES = 200
 _F0_GRID = 28
 _Q_GRID = 7
@@ -75,7 +76,7 @@ class Recording:
 class Plateau:
     """A stretch of steady tilt, with r measured on it against the fitted line."""
 
-    start_s: float
+    start_s: float  # from the record's first sample
     end_s: float
     tilt_rad: float
     coupling_ratio: float  # r measured: the plateau's gravity deflection over G F
@@ -97,6 +98,7 @@ class StandFit:
     tilt_sensitivity_nm_per_rad: float | None  # M g l_cm; None without a tilt column
     tilt_sensitivity_sigma_nm_per_rad: float | None
     drift_order: int
+    hold: str  # "foh" or "zoh": how the fit took the forces between samples
     rms_residual_m: float
     duration_s: float
     tilt_range_rad: tuple[float, float] | None
@@ -147,8 +149,8 @@ class _Design:
     (an orthonormal basis of their span) and solves only for the few that do.
     """
 
-    def __init__(self, rec: Recording, drift_order: int) -> None:
-        self.rec = rec
+    def __init__(self, rec: Recording, drift_order: int, hold: str) -> None:
+        self.rec, self.hold = rec, hold
         self.inputs = [rec.thrust_n] + ([] if rec.tilt_rad is None else [np.sin(rec.tilt_rad)])
         self.drift = _legendre(len(rec.t_s), drift_order) if drift_order >= 0 else []
         self.y_scale = float(np.std(rec.displacement_m)) or 1.0
@@ -160,7 +162,7 @@ class _Design:
         return x if self.basis is None else x - self.basis @ (self.basis.T @ x)
 
     def _varying(self, f0_hz: float, q: float) -> list[np.ndarray]:
-        return ([unit_response(u, self.rec.dt_s, f0_hz, q) for u in self.inputs]
+        return ([unit_response(u, self.rec.dt_s, f0_hz, q, self.hold) for u in self.inputs]
                 + ringing(self.rec.t_s, f0_hz, q))
 
     def matrix(self, f0_hz: float, q: float) -> tuple[np.ndarray, np.ndarray]:
@@ -179,8 +181,9 @@ class _Design:
         return self.y_off_drift - x @ coef
 
 
-def _dynamics(design: _Design, fs_hz: float, duration_s: float) -> tuple[float, float]:
-    """(f0, Q) by a grid over log f0 and log Q, then least squares from the best point."""
+def _dynamics(design: _Design, fs_hz: float, duration_s: float) -> tuple[float, float, float]:
+    """(f0, Q) by a grid over log f0 and log Q, then least squares from the best point; and
+    the residual's sum of squares there."""
     log_f = (math.log(max(4.0 / duration_s, 1e-4)), math.log(0.4 * fs_hz))
     log_q = (math.log(_Q_BOUNDS[0]), math.log(_Q_BOUNDS[1]))
     grid = [np.array((lf, lq)) for lf in np.linspace(*log_f, _F0_GRID)
@@ -188,7 +191,7 @@ def _dynamics(design: _Design, fs_hz: float, duration_s: float) -> tuple[float, 
     start = min(grid, key=lambda x: float(np.sum(design.residual(x) ** 2)))
     best = least_squares(design.residual, start, bounds=tuple(zip(log_f, log_q, strict=True)),
                          x_scale=0.1)
-    return math.exp(float(best.x[0])), math.exp(float(best.x[1]))
+    return math.exp(float(best.x[0])), math.exp(float(best.x[1])), 2 * float(best.cost)
 
 
 def _jackknife(x: np.ndarray, y: np.ndarray, blocks: int) -> tuple[np.ndarray, np.ndarray]:
@@ -248,8 +251,13 @@ def fit_recording(rec: Recording, arm_m: float, *, drift_order: int = 2,
         raise ValueError(f"the thrust F must be positive, got {force!r} N")
     fs = 1.0 / rec.dt_s
     duration = float(rec.t_s[-1] - rec.t_s[0])
-    design = _Design(rec, drift_order)
-    f0, q = _dynamics(design, fs, duration)
+    # How the logged samples stand for the forces between them: a continuous force's are
+    # best joined by lines, a DAQ's output (and leveler's simulator) holds each; the data say.
+    fits = []
+    for hold in HOLDS:
+        design = _Design(rec, drift_order, hold)
+        fits.append((_dynamics(design, fs, duration), design))
+    (f0, q, _), design = min(fits, key=lambda fit: fit[0][2])
     x, scale = design.matrix(f0, q)
     full, reps = _jackknife(x, design.y, min(JACKKNIFE_BLOCKS, n // 50))
     coef = full / scale * design.y_scale
@@ -280,12 +288,13 @@ def fit_recording(rec: Recording, arm_m: float, *, drift_order: int = 2,
             tilt = float(np.median(rec.tilt_rad[sl]))
             r = float(np.mean(gravity[sl])) / (g * force)
             r_fit = sens * math.sin(tilt) / (force * arm_m)
-            plateaus.append(Plateau(float(rec.t_s[sl.start]), float(rec.t_s[sl.stop - 1]),
+            plateaus.append(Plateau(float(rec.t_s[sl.start] - rec.t_s[0]),
+                                    float(rec.t_s[sl.stop - 1] - rec.t_s[0]),
                                     tilt, r, r_fit, k0 / (1 + r) if r != -1 else math.inf,
                                     LEVEL if abs(tilt) < PLATEAU_MIN_RAD else regime(r_fit)))
     return StandFit(arm_m=arm_m, thrust_n=force, natural_frequency_hz=f0, quality_factor=q,
                     stiffness_nm_per_rad=k0, stiffness_sigma_nm_per_rad=k0_sigma,
                     tilt_sensitivity_nm_per_rad=sens, tilt_sensitivity_sigma_nm_per_rad=sens_sigma,
-                    drift_order=drift_order,
+                    drift_order=drift_order, hold=design.hold,
                     rms_residual_m=float(np.sqrt(np.mean(resid**2))) * design.y_scale,
                     duration_s=duration, tilt_range_rad=tilt_range, plateaus=plateaus)
