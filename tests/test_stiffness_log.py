@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from dataclasses import replace
 from pathlib import Path
 
@@ -56,16 +57,13 @@ def write_csv(path: Path, cols: dict[str, np.ndarray]) -> None:
                     + "\n")
 
 
-def imported(tmp_path: Path, capsys: pytest.CaptureFixture[str], cols: dict[str, np.ndarray],
-             *, tilt: bool = True) -> Path:
+def imported(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+             cols: dict[str, np.ndarray]) -> Path:
     csv, log = tmp_path / "stand.csv", tmp_path / "stand.mcap"
-    if not tilt:
-        cols = {k: v for k, v in cols.items() if k != "tilt_urad"}
     write_csv(csv, cols)
-    extra = ["--column", "tilt=tilt_urad", "--scale", "tilt=1e-6"] if tilt else []
-    assert main(["import-csv", str(csv), "--out", str(log), *IMPORT, *extra]) == 0
-    out = capsys.readouterr().out
-    assert "thrust stand: thrust, displacement" in out
+    tilt = ["--column", "tilt=tilt_urad", "--scale", "tilt=1e-6"]
+    assert main(["import-csv", str(csv), "--out", str(log), *IMPORT, *tilt]) == 0
+    assert "thrust stand: thrust, displacement, tilt" in capsys.readouterr().out
     return log
 
 
@@ -136,11 +134,10 @@ def test_a_balanced_pendulum_shows_no_coupling(tmp_path: Path,
                                                capsys: pytest.CaptureFixture[str]) -> None:
     p = replace(TorsionParams(), com_y_m=0.0)
     log = imported(tmp_path, capsys, stand_run(p, seed=21))
-    r = analyze(capsys, log)
-    assert r["coupling_significance"] < 3
     assert main(["analyze", "stiffness", str(log), "--arm-m", "0.25"]) == 0
     text = capsys.readouterr().out
-    assert "no tilt coupling shown" in text and "tilt budget" not in text
+    shown = re.search(r"only ([\d.]+) sigma from zero: no tilt coupling shown", text)
+    assert shown and float(shown[1]) < 3 and "tilt budget" not in text
 
 
 def test_report_and_plot(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -148,21 +145,32 @@ def test_report_and_plot(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     assert main(["analyze", "stiffness", str(log), "--arm-m", "0.25", "--arm-sigma-m",
                  "0.00125", "--plot-dir", str(tmp_path / "plots")]) == 0
     text = capsys.readouterr().out
+    # the stated arm-length sigma (0.5 %) enters K0's uncertainty as 2 x 0.5 %
+    k0 = re.search(r"stiffness K0 = ([\d.]+) \+- ([\d.e-]+) N m/rad", text)
+    assert k0 and 0.0099 < float(k0[2]) / float(k0[1]) < 0.011  # printed to 2 digits
     for needed in ("K0 = 0.2", "N m/rad", "uN m/urad", "sigma from zero: the stand feels",
                    "Per tilt plateau", "tilt budget", "negative stiffness", "softening",
                    "stiffening", "level (reference)", "f0 = 0.318"):
         assert needed in text, needed
     png = tmp_path / "plots" / "stiffness_log.png"
     assert png.stat().st_size > 20_000 and png.read_bytes()[:4] == b"\x89PNG"
-    # the stated arm-length sigma (0.5 %) enters K0's uncertainty as 2 x 0.5 %
-    r = analyze(capsys, log, "--arm-sigma-m", "0.00125")
-    assert r["stiffness_sigma_nm_per_rad"] > 0.01 * r["stiffness_nm_per_rad"]
 
 
-def test_without_a_tilt_column_only_the_stiffness(tmp_path: Path,
+@pytest.fixture(scope="module")
+def short_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One level, no tilt column: for what needs a stand's log but not a sweep."""
+    tmp = tmp_path_factory.mktemp("short")
+    write_csv(tmp / "stand.csv", {k: v for k, v in stand_run(
+        TorsionParams(), seed=8, levels_urad=(0.0,)).items() if k != "tilt_urad"})
+    log = tmp / "stand.mcap"
+    assert main(["import-csv", str(tmp / "stand.csv"), "--out", str(log), *IMPORT]) == 0
+    return log
+
+
+def test_without_a_tilt_column_only_the_stiffness(short_log: Path,
                                                   capsys: pytest.CaptureFixture[str]) -> None:
-    log = imported(tmp_path, capsys, stand_run(TorsionParams(), seed=8, levels_urad=(0.0,)),
-                   tilt=False)
+    capsys.readouterr()
+    log = short_log
     r = analyze(capsys, log)
     assert r["tilt_sensitivity_nm_per_rad"] is None and r["plateaus"] == []
     assert abs(r["stiffness_nm_per_rad"] - 0.2) < 3 * r["stiffness_sigma_nm_per_rad"]
@@ -177,10 +185,9 @@ def test_without_a_tilt_column_only_the_stiffness(tmp_path: Path,
     (["--arm-m", "0.25", "--thrust-n", "1e-6", "2e-6"], "takes one F"),
     (["--arm-m", "-1"], "arm length must be positive"),
 ])
-def test_bad_requests_are_named(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+def test_bad_requests_are_named(short_log: Path, capsys: pytest.CaptureFixture[str],
                                 args: list[str], message: str) -> None:
-    log = imported(tmp_path, capsys, stand_run(TorsionParams(), seed=2, levels_urad=(0.0,)))
-    assert main(["analyze", "stiffness", str(log), *args]) == 2
+    assert main(["analyze", "stiffness", str(short_log), *args]) == 2
     assert message in capsys.readouterr().err
 
 

@@ -176,11 +176,15 @@ def plot(rec: Recording, fit: StandFit, out_dir: Path) -> Path:
             bottom.plot([p.tilt_rad * 1e6 for p in fit.plateaus],
                         [p.coupling_ratio for p in fit.plateaus], "o",
                         label="measured on each tilt plateau")
-        lo_r, hi_r = float(min(line.min(), -0.5)), float(max(line.max(), 0.5))
-        bottom.axhspan(0, hi_r, color="C8", alpha=0.1, label="softening, r > 0")
-        bottom.axhspan(-1, 0, color="C9", alpha=0.1, label="stiffening, -1 < r < 0")
-        if lo_r < -1:
-            bottom.axhspan(lo_r, -1, color="C3", alpha=0.1,
+        # zoomed on the data; the regime bands only where they fall inside
+        seen = np.concatenate([line, [p.coupling_ratio for p in fit.plateaus]])
+        reach = 1.15 * max(float(np.max(np.abs(seen))), 0.02)
+        bottom.set_ylim(-reach, reach)
+        bottom.axhspan(0, reach, color="C8", alpha=0.1, label="softening, r > 0")
+        bottom.axhspan(max(-1, -reach), 0, color="C9", alpha=0.1,
+                       label="stiffening, -1 < r < 0")
+        if reach > 1:
+            bottom.axhspan(-reach, -1, color="C3", alpha=0.1,
                            label="negative stiffness (unstable), r < -1")
         bottom.axhline(0, color="0.5", lw=0.6)
         bottom.legend(fontsize=8)
