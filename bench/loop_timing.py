@@ -272,7 +272,7 @@ def _run_child(mode: str, duration_s: float, priority: int, tmp: Path,
     """One child run; the parent (normal priority, asleep) reads its RSS meanwhile."""
     out = tmp / f"{mode}.json"
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", mode,
-           "--duration", str(duration_s), "--priority", str(priority), "--out", str(out)]
+           "--duration", f"{duration_s!r}s", "--priority", str(priority), "--out", str(out)]
     if config is not None:
         cmd += ["--config", str(config)]
     every = 10.0 if duration_s > 600 else 1.0

@@ -140,7 +140,7 @@ def test_no_drive_is_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture
 def test_a_closed_loop_log_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """leveler's own closed-loop log: the command answers the reading, it drives nothing."""
     log = tmp_path / "closed.mcap"
-    assert main(["sim", "--duration", "200", "--out", str(log), "--seed", "1"]) == 0
+    assert main(["sim", "--duration", "200s", "--out", str(log), "--seed", "1"]) == 0
     capsys.readouterr()
     assert main(["calibrate-com", str(log)]) == 2
     err = capsys.readouterr().err

@@ -127,17 +127,29 @@ def test_missing_file_is_a_clear_error(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize(
     ("text", "seconds"),
-    [("3600s", 3600.0), ("90m", 5400.0), ("6h", 21600.0), ("1d", 86400.0), ("2.5", 2.5),
-     ("24h", 86400.0), ("10min", 600.0)],
+    [("3600s", 3600.0), ("90m", 5400.0), ("6h", 21600.0), ("1d", 86400.0), ("2.5s", 2.5),
+     ("24h", 86400.0), ("10min", 600.0), ("1.5d", 129600.0)],
 )
 def test_durations(text: str, seconds: float) -> None:
     assert parse_duration(text) == seconds
 
 
-@pytest.mark.parametrize("text", ["", "h", "-5s", "0", "6 hours", "1e400"])
+@pytest.mark.parametrize("text", ["", "h", "-5s", "0s", "6 hours", "1e400s"])
 def test_bad_durations(text: str) -> None:
     with pytest.raises(ValueError, match="bad duration"):
         parse_duration(text)
+
+
+def test_a_bare_number_is_refused_with_the_fix(capsys: pytest.CaptureFixture[str]) -> None:
+    """`sim --duration 24` once meant 24 s; the person typing it meant a day."""
+    from leveler.cli.main import main
+
+    with pytest.raises(ValueError, match=r"give its unit, e\.g\. 24s, 24m or 24h"):
+        parse_duration("24")
+    with pytest.raises(SystemExit) as exit_:
+        main(["sim", "--duration", "24"])
+    assert exit_.value.code == 2
+    assert "give its unit, e.g. 24s, 24m or 24h" in capsys.readouterr().err
 
 
 def _keys(cls: type, prefix: str = "") -> list[str]:

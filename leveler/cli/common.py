@@ -8,7 +8,7 @@ from leveler.cli.durations import parse_duration
 
 
 def duration(text: str) -> float:
-    """An option type for durations: '90s', '10m', '6h', '1d' or plain seconds."""
+    """An option type for durations: '90s', '10m', '6h', '1d' (a unit is required)."""
     try:
         return parse_duration(text)
     except ValueError as exc:

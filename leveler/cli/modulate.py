@@ -55,7 +55,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--config", default=None,
                    help="with --sim: the stand's config (default: config/sim.toml)")
     p.add_argument("--settle", type=duration, default=0.0,
-                   help="with --sim: idle time before the wave (default: 0)")
+                   help="with --sim: idle time before the wave, e.g. 30s (default: none)")
     p.add_argument("--seed", type=int, default=None,
                    help="with --sim: disturbance and noise seed (default: [sim] seed)")
     p.add_argument("--plot", default=None, help="with --sim: time-series plot (PNG)")

@@ -22,8 +22,8 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--config", default="config/sim.toml",
                    help="TOML config (default: %(default)s)")
     p.add_argument("--duration", type=duration, default=parse_duration("24h"),
-                   help="virtual time to simulate: 3600s, 90m, 6h, 1d (default: 24h; "
-                   "0.1 mHz needs several hours)")
+                   help="virtual time to simulate, with its unit: 3600s, 90m, 6h, 1d (a bare "
+                   "number is refused; default: 24h; 0.1 mHz needs several hours)")
     p.add_argument("--seed", type=int, default=None,
                    help="disturbance and noise seed (default: [sim] seed of the config)")
     p.add_argument("--out", default=None, help="write the closed-loop run to this MCAP file")
