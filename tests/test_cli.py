@@ -33,6 +33,19 @@ def test_every_command_has_help(command: str, capsys: pytest.CaptureFixture[str]
     assert len(out) > 300  # says what it does, not only the usage line
 
 
+def test_version_and_a_bare_leveler(capsys: pytest.CaptureFixture[str]) -> None:
+    """`leveler --version` names the version; a bare `leveler` shows the help, not an error."""
+    from leveler import __version__
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["--version"])
+    assert exit_.value.code == 0
+    assert capsys.readouterr().out.startswith(f"leveler {__version__} (Python 3.")
+    assert main([]) == 0
+    out, err = capsys.readouterr()
+    assert out.startswith("usage: leveler") and "import-csv" in out and err == ""
+
+
 def test_top_level_help_lists_the_commands() -> None:
     text = build_parser().format_help()
     for command in COMMANDS:

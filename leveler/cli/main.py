@@ -9,6 +9,7 @@ import signal
 import sys
 from collections.abc import Sequence
 
+from leveler import __version__
 from leveler.cli import (
     analyze,
     asd,
@@ -45,7 +46,9 @@ def build_parser() -> argparse.ArgumentParser:
         "senses the tilt, a PID drives a piezo under one support, every sample goes to MCAP.",
         epilog="Units are SI throughout (m, rad, V, s, K). docs/ describes the config and the log.",
     )
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    parser.add_argument("--version", action="version",
+                        version=f"%(prog)s {__version__} (Python {sys.version.split()[0]})")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for command in COMMANDS:
         command.add_parser(sub)
     return parser
@@ -56,7 +59,11 @@ EXIT_BROKEN_PIPE = 128 + signal.SIGPIPE
 
 
 def _run(argv: Sequence[str] | None) -> int:
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:  # a bare `leveler`: what it can do, not an error
+        parser.print_help()
+        return 0
     try:
         return int(args.func(args))
     except (ConfigError, LogError, ClientError, ControlError) as exc:
