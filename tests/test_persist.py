@@ -61,3 +61,49 @@ def test_atomic_write_gives_the_mode_asked_for_from_the_start(tmp_path: Path) ->
     assert path.read_text() == "[Unit]\n" and path.stat().st_mode & 0o777 == 0o644
     assert modes == [0o600]  # while it is written nobody else can read a half file
     assert list(tmp_path.iterdir()) == [path]
+
+
+@pytest.mark.parametrize("form, text", [
+    ("dotted keys", "# lab B\ncontroller.kp_v_per_m = 1.0  # P gain\n"
+                    "controller.ki_v_per_m_s = 7e5\n\n[loop]\nrate_hz = 10.0\n"),
+    ("inline table", "controller = {kp_v_per_m = 1.0, ki_v_per_m_s = 7e5}  # gains\n"
+                     "[loop]\nrate_hz = 10.0\n"),
+    ("table", "[controller]\n# gains\nkp_v_per_m = 1.0   # P gain\nki_v_per_m_s = 7e5\n"
+              "[loop]\nrate_hz = 10.0\n"),
+])
+def test_every_valid_form_keeps_its_form_and_comments(tmp_path: Path, form: str,
+                                                      text: str) -> None:
+    """A config with dotted keys once came out with a second [controller] table, failed
+    validation and nothing was saved."""
+    import tomllib
+
+    out = set_keys(text, "controller", {"ki_v_per_m_s": 5e5, "kd_v_s_per_m": 0.5})
+    data = tomllib.loads(out)  # valid TOML, one controller table
+    assert data["controller"] == {"kp_v_per_m": 1.0, "ki_v_per_m_s": 5e5, "kd_v_s_per_m": 0.5}
+    assert data["loop"] == {"rate_hz": 10.0}
+    assert out.count("[controller]") == text.count("[controller]")
+    for comment in ("# P gain", "# gains", "# lab B"):
+        assert (comment in out) == (comment in text), comment
+    if form == "dotted keys":
+        assert "controller.ki_v_per_m_s = 500000.0" in out
+    if form == "inline table":
+        assert out.startswith("controller = {") and "} # gains" in out.replace("}  #", "} #")
+    path = tmp_path / "lab.toml"
+    path.write_text(text)
+    write_atomic(path, out, lambda tmp: tomllib.loads(tmp.read_text()))
+    assert path.read_text() == out
+
+
+def test_a_nested_section_and_removing_a_table() -> None:
+    from leveler.daemon.persist import without_table
+
+    out = set_keys("[loop]\nrate_hz = 10.0\n", "plant.pendulum", {"mass_kg": 3.0})
+    assert "[plant.pendulum]\nmass_kg = 3.0" in out and "[plant]\n" not in out
+    text = "plant.effects.cooler.period_s = 300.0\nplant.x = 1\n[loop]\nrate_hz = 10.0\n"
+    kept = without_table(text, "plant.effects")
+    assert "effects" not in kept and "plant.x = 1" in kept and "[loop]" in kept
+
+
+def test_text_that_is_not_toml_is_a_config_error() -> None:
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        set_keys("[controller\nkp = 1\n", "controller", {"kp_v_per_m": 1.0})

@@ -7,7 +7,6 @@ import dataclasses
 import json
 import math
 import os
-import re
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -21,8 +20,6 @@ if TYPE_CHECKING:
     from leveler.sim.effects import Effect
     from leveler.sim.params import PlantParams
 
-_EFFECTS_HEADER = re.compile(r"^\s*\[plant\.effects(\.[A-Za-z0-9_]+)?\]\s*(#.*)?$")
-_ANY_HEADER = re.compile(r"^\s*\[")
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
@@ -93,18 +90,12 @@ def model_text(base_text: str, effects: list[Effect], source: str,
     """The base config with the recalibrated values and its [plant.effects.*] tables
     replaced by the fitted ones: a plain config that `leveler sim` and `leveler replay
     --model` read directly."""
-    from leveler.daemon.persist import set_keys
+    from leveler.daemon.persist import set_keys, without_table
 
     for section, values in (recalibrated or {}).items():
         base_text = set_keys(base_text, section, values)
-    kept: list[str] = []
-    skipping = False
-    for line in base_text.splitlines(keepends=True):
-        if _ANY_HEADER.match(line):
-            skipping = bool(_EFFECTS_HEADER.match(line))
-        if not skipping:
-            kept.append(line)
-    text = "".join(kept).rstrip("\n") + "\n" if kept else ""
+    kept = without_table(base_text, "plant.effects").rstrip("\n")
+    text = kept + "\n" if kept else ""
     text += (f"\n# Effects fitted by `leveler diagnose` ({source}); "
              "uncertainties in the diagnose report.\n")
     for fx in effects:

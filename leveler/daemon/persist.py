@@ -1,57 +1,60 @@
-"""Write tuned values back into the config file: atomically, keeping the lab's comments.
+"""Write tuned values back into the config file: atomically, keeping the lab's own form.
 
-A lab config is a document people annotate, so values are replaced in place in the text
-of their section rather than re-serialized; the result is validated as a whole before it
+A lab config is a document people annotate and write in whatever TOML form they like
+(tables, dotted keys, inline tables), so values are set through tomlkit, which keeps
+comments, key order and each table's form; the result is validated as a whole before it
 replaces the old file (write to a temporary file, fsync, rename, fsync the directory).
 """
 
 from __future__ import annotations
 
 import os
-import re
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
-_HEADER = re.compile(r"^\s*\[([^\[\]]+)\]\s*(#.*)?$")
+import tomlkit
+from tomlkit.exceptions import TOMLKitError
+
+from leveler.typed_config import ConfigError
 
 
-def _fmt(value: float) -> str:
-    return repr(float(value)) if value == value and abs(value) != float("inf") else "inf"
+def _parse(text: str) -> tomlkit.TOMLDocument:
+    try:
+        return tomlkit.parse(text)
+    except TOMLKitError as exc:
+        raise ConfigError(f"the config is not valid TOML: {exc}") from None
 
 
 def set_keys(text: str, section: str, values: dict[str, float]) -> str:
-    """`text` with `section`'s keys set to `values` (added at the section's end if absent)."""
-    lines = text.splitlines(keepends=True)
-    start = end = None
-    for i, line in enumerate(lines):
-        m = _HEADER.match(line)
-        if m and start is None and m.group(1).strip() == section:
-            start = i
-        elif m and start is not None:
-            end = i
-            break
-    if start is None:
-        body = "".join(f"{k} = {_fmt(v)}\n" for k, v in values.items())
-        sep = "" if not text or text.endswith("\n") else "\n"
-        return f"{text}{sep}\n[{section}]\n{body}"
-    end = len(lines) if end is None else end
-    pending = dict(values)
-    last_key = start
-    for i in range(start + 1, end):
-        m = re.match(r"^(\s*)([A-Za-z0-9_]+)(\s*=\s*)([^#\n]*?)(\s*#.*)?(\r?\n)?$", lines[i])
-        if not m:
-            continue
-        last_key = i
-        key = m.group(2)
-        if key in pending:
-            lines[i] = (f"{m.group(1)}{key}{m.group(3)}{_fmt(pending.pop(key))}"
-                        f"{m.group(5) or ''}{m.group(6) or ''}")
-    if pending:
-        if not lines[last_key].endswith("\n"):
-            lines[last_key] += "\n"
-        lines[last_key + 1:last_key + 1] = [f"{k} = {_fmt(v)}\n" for k, v in pending.items()]
-    return "".join(lines)
+    """`text` with the keys of `section` (dotted for nested tables, e.g. "plant.pendulum")
+    set to `values`: replaced where they are, added to the section if absent, the section
+    added at the end if the file has none."""
+    doc = _parse(text)
+    table: tomlkit.TOMLDocument | tomlkit.items.Table = doc
+    parts = section.split(".")
+    for depth, part in enumerate(parts):
+        if part not in table:
+            # a parent only named on its way to the child gets no header of its own
+            table[part] = tomlkit.table(is_super_table=depth < len(parts) - 1)
+        table = table[part]
+    for key, value in values.items():
+        table[key] = float(value)
+    return tomlkit.dumps(doc)
+
+
+def without_table(text: str, section: str) -> str:
+    """`text` without the (dotted) table `section` and everything under it, in any form."""
+    doc = _parse(text)
+    *parents, last = section.split(".")
+    table: tomlkit.TOMLDocument | tomlkit.items.Table = doc
+    for part in parents:
+        if part not in table:
+            return text
+        table = table[part]
+    if last in table:
+        del table[last]
+    return tomlkit.dumps(doc)
 
 
 def write_atomic(path: Path, text: str, validate: Callable[[Path], object],

@@ -262,7 +262,7 @@ def _search(u: np.ndarray, t: np.ndarray, dt: float, usable: np.ndarray) -> list
     return spans
 
 
-def ringing(t: np.ndarray, f0_hz: float, q: float) -> list[np.ndarray]:
+def free_ringing(t: np.ndarray, f0_hz: float, q: float) -> list[np.ndarray]:
     """The pendulum's free motion from the span's start: e^(-s t) cos and sin of its
     resonance (two real decays when it is overdamped)."""
     w0, t = 2 * np.pi * f0_hz, t - t[0]
@@ -308,7 +308,7 @@ def measure(t_s: np.ndarray, u_v: np.ndarray, y_m: np.ndarray, spans: list[_Span
                   and min(o.b, s.b) - max(o.a, a) > 0.5 * (s.b - a)]
         design = _design(t[seg], [s.frequency_hz, *others])
         if ringing is not None:
-            design = np.column_stack([design, *ringing(t[seg], *ringing)])
+            design = np.column_stack([design, *free_ringing(t[seg], *ringing)])
         cu, *_ = np.linalg.lstsq(design, u[seg], rcond=None)
         cy, *_ = np.linalg.lstsq(design, y[seg], rcond=None)
         res = y[seg] - design @ cy

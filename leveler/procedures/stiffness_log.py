@@ -36,7 +36,7 @@ import numpy as np
 from scipy.ndimage import median_filter
 from scipy.optimize import least_squares
 
-from leveler.procedures.drive_lines import ringing
+from leveler.procedures.drive_lines import free_ringing
 from leveler.procedures.stiffness import (
     BUDGET_FRACTION,
     LEVEL,
@@ -163,7 +163,7 @@ class _Design:
 
     def _varying(self, f0_hz: float, q: float) -> list[np.ndarray]:
         return ([unit_response(u, self.rec.dt_s, f0_hz, q, self.hold) for u in self.inputs]
-                + ringing(self.rec.t_s, f0_hz, q))
+                + free_ringing(self.rec.t_s, f0_hz, q))
 
     def matrix(self, f0_hz: float, q: float) -> tuple[np.ndarray, np.ndarray]:
         """The columns, each divided by its scale, and those scales."""
