@@ -77,11 +77,20 @@ def test_asd_compares_two_logs_and_plots(logs: tuple[Path, Path], tmp_path: Path
     proc = leveler("asd", str(opened), "--channel", "tilt_rad", "--compare", str(closed),
                    "--plot", str(png), cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
-    assert "ASD of tilt_rad" in proc.stdout
+    assert "ASD of tilt_rad [rad/sqrt(Hz)]" in proc.stdout  # the unit from the log's schema
+    header = next(ln for ln in proc.stdout.splitlines() if ln.strip().startswith("frequency"))
+    assert header.split()[1:3] == ["open.mcap", "closed.mcap"]  # names, not whole paths
     row = next(ln for ln in proc.stdout.splitlines() if ln.strip().startswith("0.001 Hz"))
     ratio = float(row.split()[-1].rstrip("x"))
     assert ratio < 0.5  # closed loop well below open loop at 1 mHz
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_asd_units_come_from_each_fields_schema(logs: tuple[Path, Path]) -> None:
+    units = read_log(logs[0]).units
+    assert (units["sensor_m"], units["applied_v"], units["t_s"], units["temperature_k"]) == (
+        "m", "V", "s", "K")
+    assert "seq" not in units and "state" not in units  # no unit, none made up
 
 
 def test_asd_json_is_a_spectrum(logs: tuple[Path, Path], tmp_path: Path) -> None:

@@ -147,13 +147,26 @@ def _at(spec: Spectrum, f: float) -> float | None:
     return float(np.exp(np.interp(np.log(f), np.log(spec.freq_hz), np.log(spec.asd))))
 
 
+def _short_labels(paths: list[str]) -> dict[str, str]:
+    """A legend entry per log: its file name, with its directory when two names are alike."""
+    from pathlib import Path
+
+    names = [Path(p).name for p in paths]
+    return {p: (n if names.count(n) == 1 else str(Path(Path(p).parent.name) / n))
+            for p, n in zip(paths, names, strict=True)}
+
+
 def run(args: argparse.Namespace) -> int:
     from leveler.analysis.spectral import lpsd
     from leveler.log.reader import partial_note, read_log
 
     curves: list[tuple[str, Spectrum]] = []
-    for path in [args.log, *([args.compare] if args.compare else [])]:
+    paths = [args.log, *([args.compare] if args.compare else [])]
+    labels = _short_labels(paths)
+    unit = ""
+    for path in paths:
         log = read_log(path)
+        unit = unit or log.units.get(args.channel, "")
         x, fs = channel(log, args.channel, path)
         if not log.complete:
             print(f"leveler asd: {partial_note(path, log.stop_reason, len(x))}",
@@ -166,15 +179,16 @@ def run(args: argparse.Namespace) -> int:
         if len(x) < 16:
             raise LogError(f"{path}: only {len(x)} samples of {args.channel!r} left after "
                            "cutting the non-finite ones at its ends; need at least 16")
-        curves.append((path, lpsd(x, fs)))
+        curves.append((labels[path], lpsd(x, fs)))
+    per_rthz = f"{unit}/sqrt(Hz)" if unit else "per sqrt(Hz); the log's schema gives no unit"
     if args.json:
-        print(json.dumps({label: {"freq_hz": s.freq_hz.tolist(), "asd": s.asd.tolist()}
-                          for label, s in curves}))
+        print(json.dumps({path: {"freq_hz": s.freq_hz.tolist(), "asd": s.asd.tolist()}
+                          for path, (_, s) in zip(paths, curves, strict=True)}))
     else:
         header = f"{'frequency':>12}" + "".join(f"  {label[-28:]:>28}" for label, _ in curves)
         if len(curves) == 2:
             header += f"  {'ratio':>8}"
-        print(f"ASD of {args.channel} [unit/sqrt(Hz)]")
+        print(f"ASD of {args.channel} [{per_rthz}]")
         print(header)
         for f in TABLE_FREQS_HZ:
             vals = [_at(s, f) for _, s in curves]
@@ -186,7 +200,8 @@ def run(args: argparse.Namespace) -> int:
     if args.plot:
         from leveler.analysis.plots import plot_asd
 
-        plot_asd(curves, args.plot, ylabel=f"ASD of {args.channel} [unit/√Hz]",
+        plot_asd(curves, args.plot, ylabel=f"ASD of {args.channel} "
+                 f"[{per_rthz.replace('sqrt(Hz)', '√Hz')}]",
                  title=f"leveler asd: {args.channel}")
         print(f"plot: {args.plot}")
     return 0

@@ -14,6 +14,7 @@ than messages are still parsed by mcap's record classes.
 from __future__ import annotations
 
 import os
+import re
 import struct
 import zlib
 from collections.abc import Iterator
@@ -74,6 +75,7 @@ class LogData:
     stop_reason: str = ""
     environment: dict[str, np.ndarray] = field(default_factory=dict)
     thrust_stand: dict[str, np.ndarray] = field(default_factory=dict)
+    units: dict[str, str] = field(default_factory=dict)  # field -> unit, from the schemas
 
 
 def _decompress(body: bytes) -> bytes:
@@ -242,6 +244,23 @@ class _Table:
         return {k: np.concatenate([p[k] for p in self.parts]) for k in self.parts[0]}
 
 
+_UNIT = re.compile(r"\[([^\[\]]+)\]")
+
+
+def _schema_units(data: bytes) -> dict[str, str]:
+    """Each property's unit, the last [bracketed] part of its description (writer.py)."""
+    try:
+        props = orjson.loads(data).get("properties", {})
+    except (orjson.JSONDecodeError, AttributeError):
+        return {}
+    out = {}
+    for name, spec in props.items():
+        found = _UNIT.findall(str(spec.get("description", ""))) if isinstance(spec, dict) else []
+        if found:
+            out[name] = found[-1]
+    return out
+
+
 def read_log(path: str | Path) -> LogData:
     """Read every readable message of a log; a truncated file gives complete=False."""
     scan = _Scan(path)
@@ -249,6 +268,7 @@ def read_log(path: str | Path) -> LogData:
               ENVIRONMENT_TOPIC: _Table(Environment), THRUST_STAND_TOPIC: _Table(ThrustStand)}
     by_channel: dict[int, _Table] = {}
     metadata: dict[str, dict[str, str]] = {}
+    units: dict[str, str] = {}
     read = 0
     try:
         for record in scan.records():
@@ -265,6 +285,8 @@ def read_log(path: str | Path) -> LogData:
                 by_channel[record.id] = tables[record.topic]
             elif isinstance(record, Metadata):
                 metadata[record.name] = dict(record.metadata)
+            elif isinstance(record, Schema):
+                units |= _schema_units(record.data)
         events = tables[EVENT_TOPIC]
         event_list = [
             {"log_time_ns": t} | orjson.loads(data)
@@ -297,6 +319,7 @@ def read_log(path: str | Path) -> LogData:
         stop_reason=reason,
         environment=env_cols,
         thrust_stand=stand_cols,
+        units=units,
     )
 
 
