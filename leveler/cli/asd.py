@@ -51,11 +51,12 @@ def channel(log: LogData, name: str, path: str) -> tuple[np.ndarray, float]:
     import numpy as np
 
     tables = (log.samples, log.truth, log.thrust_stand, log.environment)
-    for table in tables:
-        if name in table and len(table[name]):
-            values = np.asarray(table[name])
-            t = np.asarray(table["t_s"], dtype=float)
-            break
+    # a table that holds the channel with data first (an imported stand's log has an empty
+    # sample table), then one that holds it empty: "only 0 samples" says why
+    for table in sorted((t for t in tables if name in t), key=lambda t: not len(t[name])):
+        values = np.asarray(table[name])
+        t = np.asarray(table["t_s"], dtype=float)
+        break
     else:
         names = sorted({k for tab in tables for k, v in tab.items()
                         if len(v) and np.asarray(v).dtype.kind in "fi"})
@@ -64,6 +65,8 @@ def channel(log: LogData, name: str, path: str) -> tuple[np.ndarray, float]:
         raise LogError(f"{path}: channel {name!r} is not numeric")
     if len(values) < 16:
         early = f" (the log is incomplete: {log.stop_reason})" if not log.complete else ""
+        if len(log.thrust_stand.get("t_s", ())):
+            early += "; it holds a thrust stand's channels: --channel displacement_m"
         raise LogError(f"{path}: only {len(values)} samples of {name!r}; need at least 16"
                        f"{early}")
     step = float(np.median(np.diff(t)))

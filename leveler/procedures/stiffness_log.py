@@ -11,7 +11,8 @@ both torques go through the same pendulum, and the displacement at the arm end, 
 with G = L^2 / K0 [m/N] and B = L M g l_cm / K0 [m/rad], the ringing the pendulum's free motion
 from an unknown start (two columns), and the sensor's slow zero drift a Legendre polynomial.
 (f0, Q) come by variable projection as in `identify_transfer` (grid, then least squares in log
-space); G, B and the rest by linear least squares. Then
+space); G, B and the rest by linear least squares. The recorded forces are taken as joined by
+straight lines between samples or as held, whichever fits the record better. Then
 
     K0 = L^2 / G,   M g l_cm = B L / G,
 
@@ -206,7 +207,7 @@ def _jackknife(x: np.ndarray, y: np.ndarray, blocks: int) -> tuple[np.ndarray, n
     return full, np.array(reps)
 
 
-def _jack_sigma(full: float, reps: np.ndarray) -> float:
+def _jack_sigma(reps: np.ndarray) -> float:
     n = len(reps)
     return float(math.sqrt((n - 1) / n * np.sum((reps - reps.mean()) ** 2))) if n > 1 else 0.0
 
@@ -233,8 +234,7 @@ def find_plateaus(t_s: np.ndarray, tilt_rad: np.ndarray, min_length_s: float) ->
 
 def fit_recording(rec: Recording, arm_m: float, *, drift_order: int = 2,
                   thrust_n: float | None = None, arm_sigma_m: float = 0.0,
-                  thrust_sigma_rel: float = 0.0, tilt_sigma_rel: float = 0.0,
-                  period_s: float | None = None) -> StandFit:
+                  thrust_sigma_rel: float = 0.0, tilt_sigma_rel: float = 0.0) -> StandFit:
     """K0 and M g l_cm from one recording (module docstring); raises ValueError saying why
     the record cannot tell."""
     n = len(rec.t_s)
@@ -268,7 +268,7 @@ def fit_recording(rec: Recording, arm_m: float, *, drift_order: int = 2,
         raise ValueError(f"the displacement moves against the thrust (G = {g:.3g} m/N): check "
                          "the signs of the thrust and displacement columns")
     k0, k0_reps = arm_m**2 / g, arm_m**2 / g_reps
-    k0_sigma = math.hypot(_jack_sigma(k0, k0_reps),
+    k0_sigma = math.hypot(_jack_sigma(k0_reps),
                           k0 * math.hypot(2 * arm_sigma_m / arm_m, thrust_sigma_rel))
     sens = sens_sigma = None
     plateaus: list[Plateau] = []
@@ -276,15 +276,15 @@ def fit_recording(rec: Recording, arm_m: float, *, drift_order: int = 2,
     if rec.tilt_rad is not None:
         b, b_reps = coef[1], rep_coef[:, 1]
         sens = b * arm_m / g
-        sens_sigma = math.hypot(_jack_sigma(sens, b_reps * arm_m / g_reps),
+        sens_sigma = math.hypot(_jack_sigma(b_reps * arm_m / g_reps),
                                 abs(sens) * math.sqrt((arm_sigma_m / arm_m) ** 2
                                                       + thrust_sigma_rel**2 + tilt_sigma_rel**2))
         tilt_range = (float(rec.tilt_rad.min()), float(rec.tilt_rad.max()))
         # the gravity deflection the data show on each plateau: what the fit does not put
         # elsewhere (thrust response, ringing, drift), as r = that / (G F)
         gravity = resid * design.y_scale + b * x[:, 1] * scale[1]
-        span = period_s if period_s is not None else min(duration / 8, 600.0)
-        for sl in find_plateaus(rec.t_s, rec.tilt_rad, span):
+        # a plateau lasts at least 10 min (an eighth of a short record)
+        for sl in find_plateaus(rec.t_s, rec.tilt_rad, min(duration / 8, 600.0)):
             tilt = float(np.median(rec.tilt_rad[sl]))
             r = float(np.mean(gravity[sl])) / (g * force)
             r_fit = sens * math.sin(tilt) / (force * arm_m)
