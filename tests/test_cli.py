@@ -197,3 +197,12 @@ def test_bridge_gaps_bounds(x: np.ndarray, fs: float, samples: int | None, gaps:
     assert (b.samples, b.gaps, b.trimmed) == (samples, gaps, trimmed)
     assert np.all(np.isfinite(out)) and len(out) == len(x) - trimmed
     np.testing.assert_allclose(out, 1.0)  # a straight line between equal neighbours
+
+
+def test_the_license_is_an_spdx_expression() -> None:
+    """Packaging tools read the license from its SPDX expression (PEP 639), not a free text."""
+    import importlib.metadata
+
+    meta = importlib.metadata.metadata("lab-leveler")
+    assert meta["License-Expression"] == "BSD-3-Clause"
+    assert "LICENSE" in (meta.get_all("License-File") or [])
