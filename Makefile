@@ -7,7 +7,7 @@ CONFIG ?= config/sim.toml
 
 INSTALL_PYTHON ?= /usr/bin/python3
 
-.PHONY: run test test-slow bench bench-modbus lint clean install systemd-deps device-deps test-systemd
+.PHONY: run test test-slow bench bench-modbus lint clean install constraints systemd-deps device-deps test-systemd
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null || { echo "need $(PYTHON) (apt-get install python3 python3-venv)"; exit 1; }
@@ -82,6 +82,12 @@ clean:
 # present), /etc/systemd/system/leveler.service. Needs root; safe to repeat.
 install:
 	$(INSTALL_PYTHON) -m leveler.daemon.install --python $(INSTALL_PYTHON)
+
+# The versions make install pins (config/constraints.txt): this venv's, after make test passed.
+constraints: $(STAMP)
+	{ echo "# The versions make install pins under /opt/leveler: those make test last passed with"; \
+	  echo "# (written by make constraints from the dev venv; pip install -c reads it)."; \
+	  $(BIN)/python -m pip freeze --exclude-editable; } > config/constraints.txt
 
 # mbpoll: a third-party Modbus client the tests check the emulator with; apt-installed only
 # when missing and we are root (elsewhere that test skips and says why).

@@ -120,7 +120,8 @@ def test_dry_run_lists_every_step_and_changes_nothing(tmp_path: Path, system_pyt
                  "would create user leveler: useradd --system --no-create-home",
                  "--shell /usr/sbin/nologin --gid leveler --groups dialout",
                  f"would create venv /opt/leveler with {system_python}",
-                 f"would pip install {REPO} into /opt/leveler",
+                 f"would pip install {REPO} into /opt/leveler (versions pinned by "
+                 "config/constraints.txt)",
                  "would copy config/lab.toml to /etc/leveler/leveler.toml",
                  "would write unit /etc/systemd/system/leveler.service",
                  "systemctl enable --now leveler"):
@@ -206,3 +207,24 @@ def test_refuses_an_interpreter_the_sandbox_hides(tmp_path: Path) -> None:
     with pytest.raises(InstallError, match="ProtectHome"):
         install_service(root=tmp_path, dry_run=True, python="/home/someone/.pyenv/bin/python3")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_constraints_pin_every_runtime_dependency_within_its_bounds() -> None:
+    """make install takes the tested versions; a pin outside pyproject's bounds (say mcap,
+    whose internals the writer relies on) would fail the install, not the test."""
+    import importlib.metadata
+
+    from packaging.requirements import Requirement
+
+    pins = {}
+    for line in (REPO / "config" / "constraints.txt").read_text().splitlines():
+        if line and not line.startswith("#"):
+            name, _, version = line.partition("==")
+            pins[name.lower().replace("_", "-")] = version
+    for text in importlib.metadata.requires("lab-leveler") or []:
+        req = Requirement(text)
+        if req.marker is not None:  # an extra's
+            continue
+        version = pins.get(req.name.lower().replace("_", "-"))
+        assert version is not None, f"{req.name} is not pinned"
+        assert req.specifier.contains(version), f"{req.name}=={version} outside {req.specifier}"

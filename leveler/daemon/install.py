@@ -104,12 +104,20 @@ def _check_python(python: str) -> None:
                            "(apt-get install python3 python3-venv)") from None
 
 
+#: The versions `make test` last passed with (`make constraints` writes it): the service
+#: gets those, not whatever the package index serves on the day of the install.
+CONSTRAINTS = Path("config") / "constraints.txt"
+
+
 def _pip_install(venv_python: Path, source: Path) -> None:
-    """Install a copy of the source tree, so the build leaves no root-owned files in it."""
+    """Install a copy of the source tree, so the build leaves no root-owned files in it,
+    with the tested versions (CONSTRAINTS) when the tree has them."""
     with tempfile.TemporaryDirectory(prefix="leveler-install-") as tmp:
         src = Path(tmp) / "src"
         shutil.copytree(source, src, ignore=_NOT_SOURCE)
-        _run([str(venv_python), "-m", "pip", "install", "--quiet", "--upgrade", str(src)])
+        pinned = ["-c", str(src / CONSTRAINTS)] if (src / CONSTRAINTS).is_file() else []
+        _run([str(venv_python), "-m", "pip", "install", "--quiet", "--upgrade", *pinned,
+              str(src)])
 
 
 def install_service(*, prefix: str = "/opt/leveler", config_dir: str = "/etc/leveler",
@@ -166,7 +174,10 @@ def install_service(*, prefix: str = "/opt/leveler", config_dir: str = "/etc/lev
         else:
             step(f"created venv {prefix} ({python})", f"create venv {prefix} with {python}",
                  lambda: _run([python, "-m", "venv", str(_under(root, prefix))]))
-        step(f"installed {source} into {prefix}", f"pip install {source} into {prefix}",
+        pins = (f" (versions pinned by {CONSTRAINTS})" if (source / CONSTRAINTS).is_file()
+                else " (no constraints file: the index's newest versions)")
+        step(f"installed {source} into {prefix}{pins}",
+             f"pip install {source} into {prefix}{pins}",
              lambda: _pip_install(venv_python, source))
     elif dry_run or (_under(root, prefix) / "bin" / "leveler").exists():
         lines.append(f"venv {prefix}: used as it is (build_venv=False)")
