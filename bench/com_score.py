@@ -25,6 +25,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from bench.common import seeds  # noqa: E402
 from bench.independent.tiltmeter import write_recording  # noqa: E402
 
 LEVELER = [sys.executable, "-m", "leveler.cli"]
@@ -81,14 +82,6 @@ def score(seed: int, drive: str, drift_scale: float, work: Path) -> dict:
             "error_rel": d / d_true - 1, "pull": (d - d_true) / r["com_length_sigma_m"],
             "f_z_hz": truth["f_z_hz"], "lines": len(r["lines"]),
             "steps": len(truth["drive"]["steps"])}
-
-
-def seeds(text: str) -> list[int]:
-    out: list[int] = []
-    for part in text.split(","):
-        a, _, b = part.partition("-")
-        out += list(range(int(a), int(b or a) + 1))
-    return out
 
 
 def main() -> int:

@@ -55,3 +55,12 @@ def bench_tmpdir() -> tempfile.TemporaryDirectory[str]:
     (the logging figures include the writes and the fsync, so a tmpfs /tmp flatters them)."""
     base = os.environ.get("LEVELER_BENCH_TMP") or None
     return tempfile.TemporaryDirectory(prefix="leveler-bench-", dir=base)
+
+
+def seeds(text: str) -> list[int]:
+    """A --seeds list: "301-310", "1,4,9" or both, "1-3,7"."""
+    out: list[int] = []
+    for part in text.split(","):
+        a, _, b = part.partition("-")
+        out += list(range(int(a), int(b or a) + 1))
+    return out

@@ -31,6 +31,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from bench.common import seeds  # noqa: E402
 from bench.independent.thrust_stand import write_recording  # noqa: E402
 
 LEVELER = [sys.executable, "-m", "leveler.cli"]
@@ -91,14 +92,6 @@ def score(seed: int, scenario: str) -> dict:
     out["k0_pull"] = (out["k0"] - k0) / out["k0_sigma"]
     out["mgl_pull"] = (out["mgl"] - mgl) / out["mgl_sigma"]
     out["shown"] = out["significance"] >= SHOWN_SIGMA
-    return out
-
-
-def seeds(text: str) -> list[int]:
-    out: list[int] = []
-    for part in text.split(","):
-        a, _, b = part.partition("-")
-        out += list(range(int(a), int(b or a) + 1))
     return out
 
 
