@@ -12,6 +12,7 @@ from __future__ import annotations
 import importlib.util
 import logging
 import math
+import sys
 from pathlib import Path
 
 import pytest
@@ -107,9 +108,9 @@ def test_without_nidaqmx_connect_says_what_to_install(caplog: pytest.LogCaptureF
         stand.connect()
     message = str(err.value)
     assert message.startswith("NI-DAQmx AI Dev1/ai0: the nidaqmx package is not installed")
-    assert "pip install 'lab-leveler[nidaq]'" in message
+    assert f"{sys.executable} -m pip install 'nidaqmx>=1.0,<2'" in message
     assert "NI-DAQmx runtime" in message
-    with pytest.raises(DriverError, match=r"^NI-DAQmx AO Dev1/ao0: .*lab-leveler\[nidaq\]"):
+    with pytest.raises(DriverError, match=r"^NI-DAQmx AO Dev1/ao0: .*the nidaq extra"):
         stand.actuator.connect()
     with caplog.at_level(logging.ERROR):
         stand.actuator.make_safe()  # what the loop calls on a fault: logs, never raises

@@ -1,3 +1,5 @@
+# PYTHON_ARGCOMPLETE_OK: argcomplete's global completion looks for this in the first 1 KiB of
+# the module the `leveler` console script imports
 """The `leveler` command: one subcommand per job, each with --help that answers questions."""
 
 from __future__ import annotations
@@ -9,11 +11,14 @@ import signal
 import sys
 from collections.abc import Sequence
 
+import argcomplete
+
 from leveler import __version__
 from leveler.cli import (
     analyze,
     asd,
     calibrate_com,
+    common,
     design,
     diagnose,
     emulate,
@@ -51,6 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for command in COMMANDS:
         command.add_parser(sub)
+    common.add_file_completers(parser)
     return parser
 
 
@@ -60,6 +66,7 @@ EXIT_BROKEN_PIPE = 128 + signal.SIGPIPE
 
 def _run(argv: Sequence[str] | None) -> int:
     parser = build_parser()
+    argcomplete.autocomplete(parser)  # under the shell's completion: print the words and exit
     args = parser.parse_args(argv)
     if args.command is None:  # a bare `leveler`: what it can do, not an error
         parser.print_help()

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import math
+import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from types import ModuleType
@@ -26,7 +27,10 @@ log = logging.getLogger(__name__)
 
 RUNTIME_HINT = ("install NI's NI-DAQmx runtime (`python -m nidaqmx installdriver`, or from "
                 "ni.com; on Linux only the distributions NI supports)")
-INSTALL_HINT = f"pip install 'lab-leveler[nidaq]' for the nidaqmx package, and {RUNTIME_HINT}"
+# Into the environment this daemon runs in, by its own interpreter: works for a checkout, a
+# wheel and the /opt/leveler service alike (the `nidaq` extra is this one package).
+INSTALL_HINT = (f"`{sys.executable} -m pip install 'nidaqmx>=1.0,<2'` (the nidaq extra; "
+                f"docs/install.md), and {RUNTIME_HINT}")
 
 
 def _import_nidaqmx(where: str) -> ModuleType:
