@@ -113,6 +113,8 @@ class VirtualStand:
                     writer.wait_drained(max_backlog=_PACE_EVERY)
                 if progress is not None:
                     progress(k / cycles)
+        if progress is not None:
+            progress(1.0)
 
     def recorded(self, first: int = 0) -> Run:
         """The recorded series from sample `first` on."""

@@ -378,11 +378,18 @@ def _recalibrated(meas: Measured, plant: PlantParams, whole: slice, excited: boo
 
 
 def diagnose(meas: Measured, max_effects: int = 4,
-             thresholds: dict[str, float] | None = None, jobs: int = 1) -> Diagnosis:
+             thresholds: dict[str, float] | None = None, jobs: int = 1,
+             progress: Callable[[str, int, int], None] | None = None) -> Diagnosis:
     """`thresholds`: per family, the held-out evidence a candidate must beat, calibrated
     on null data (`leveler.analysis.nullcal`) where that is above its BIC penalty; every
     candidate must beat the penalty, on the training part and on the held-out part.
-    `jobs`: processes the families of each round are fitted in."""
+    `jobs`: processes the families of each round are fitted in. `progress` is told
+    (stage, done, total) as the minute-long search goes."""
+    def stage(name: str, done: int = 0, total: int = 1) -> None:
+        if progress is not None:
+            progress(name, done, total)
+
+    stage("recalibrating the model")
     start_wall = time.perf_counter()
     pred = Predictor(meas.config.plant, meas)
     n = len(meas.y_m)
@@ -417,7 +424,11 @@ def diagnose(meas: Measured, max_effects: int = 4,
                     and (temperature or not cls.needs_temperature)
                     and (excited or not cls.needs_excitation)]
         passed: list[tuple[Fit, Candidate]] = []
-        for family_tried, family_passed in _each_family(families, r, jobs):
+        name = f"round {len(found) + 1}: fitting each family of effects"
+        total = len(families)
+        stage(name, 0, total)
+        for family_tried, family_passed in _each_family(
+                families, r, jobs, lambda done, name=name, total=total: stage(name, done, total)):
             tried += family_tried
             passed += family_passed
         # The best candidate that held out, confirmed on the whole log; one the whole log
@@ -448,6 +459,7 @@ def diagnose(meas: Measured, max_effects: int = 4,
             break
         (pred, recal, nuisance), found_one = outcome
         found.append(found_one)
+    stage("recalibrating with what was found")
     found, (pred, recal, nuisance) = _calibration_after_all(
         meas, found, (pred, recal, nuisance), whole, act_excited, tried)
     settled = _settled(meas, pred, recal, nuisance, whole)
@@ -458,6 +470,7 @@ def diagnose(meas: Measured, max_effects: int = 4,
     if settled[1] is None or not settled[1].disputed:
         pred, recal, nuisance = settled
     w_tr, w_te = make_blocks(meas, pred, train), make_blocks(meas, pred, test)
+    stage("looking for what is left")
     rest = None
     if not ambiguous:  # lines are looked for on one frequency grid: the longest blocks
         def mode_near(spectra: Spectra, f_hz: float) -> tuple[Bump, str]:
@@ -692,18 +705,27 @@ def _family_at(i: int) -> tuple[list[Candidate], list[tuple[Fit, Candidate]]]:
     return _family(families[i], r)
 
 
-def _each_family(families: list[type[Effect]], r: _Round, jobs: int
+def _each_family(families: list[type[Effect]], r: _Round, jobs: int,
+                 done: Callable[[int], None]
                  ) -> list[tuple[list[Candidate], list[tuple[Fit, Candidate]]]]:
     """`_family` of each, in order; over `jobs` forked processes when there are several
-    (the families' fits are independent, and most of a round's time)."""
+    (the families' fits are independent, and most of a round's time). `done` is told
+    how many have finished."""
     global _ROUND
+    out = []
     if jobs <= 1 or len(families) < 2:
-        return [_family(cls, r) for cls in families]
+        for cls in families:
+            out.append(_family(cls, r))
+            done(len(out))
+        return out
     _ROUND = (families, r)
     try:
         with ProcessPoolExecutor(min(jobs, len(families)), mp_context=get_context("fork"),
                                  initializer=one_blas_thread) as pool:
-            return list(pool.map(_family_at, range(len(families))))
+            for result in pool.map(_family_at, range(len(families))):
+                out.append(result)
+                done(len(out))
+            return out
     finally:
         _ROUND = None
 

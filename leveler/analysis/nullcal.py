@@ -32,7 +32,6 @@ import hashlib
 import json
 import math
 import os
-import sys
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -253,7 +252,7 @@ def save(cal: NullCalibration) -> Path:
 
 def calibrate(meas: Measured, runs: int, *, jobs: int = 1, alpha: float = ALPHA,
               key: str | None = None, first_seed: int = 0,
-              progress: Callable[[int, int, float], None] | None = None) -> NullCalibration:
+              progress: Callable[[int, int], None] | None = None) -> NullCalibration:
     """`runs` null runs (parallel over `jobs` processes), each a simulated log on `meas`'s
     schedule diagnosed in full; the thresholds at `alpha` false alarms per log."""
     start = time.perf_counter()
@@ -265,7 +264,7 @@ def calibrate(meas: Measured, runs: int, *, jobs: int = 1, alpha: float = ALPHA,
         for name, v in result.items():
             stats.setdefault(name, []).append(v)
         if progress is not None:
-            progress(len(next(iter(stats.values()))), runs, time.perf_counter() - start)
+            progress(len(next(iter(stats.values()))), runs)
 
     if jobs <= 1:
         for s in seeds:
@@ -276,10 +275,3 @@ def calibrate(meas: Measured, runs: int, *, jobs: int = 1, alpha: float = ALPHA,
                 add(fut.result())
     return from_statistics(stats, alpha, key, time.perf_counter() - start)
 
-
-def report_progress(done: int, total: int, elapsed_s: float) -> None:
-    """One line per finished run on stderr, with the time left at this rate."""
-    left = elapsed_s / done * (total - done)
-    sys.stderr.write(f"null calibration: {done}/{total} runs, {elapsed_s:.0f} s, "
-                     f"about {left / 60:.1f} min left\n")
-    sys.stderr.flush()

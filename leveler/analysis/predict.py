@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import tomllib
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -74,10 +75,12 @@ def _config_from_text(text: str, where: str) -> Config:
         raise LogError(f"{where}: the config stored in the log is not valid: {exc}") from None
 
 
-def load_measured(path: str | Path, model: str | Path | None = None) -> Measured:
-    """Read a log (and the model to replay it against); clear errors for unusable logs."""
+def load_measured(path: str | Path, model: str | Path | None = None,
+                  progress: Callable[[float], None] | None = None) -> Measured:
+    """Read a log (and the model to replay it against); clear errors for unusable logs.
+    `progress`: told the fraction of the log read (read_log)."""
     path = str(path)
-    data = read_log(path)
+    data = read_log(path, progress)
     s = data.samples
     n = len(s.get("t_s", ()))
     if n < 1000:

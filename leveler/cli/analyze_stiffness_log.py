@@ -43,14 +43,17 @@ def given_without_log(args: argparse.Namespace) -> list[str]:
     return given + (["--drift"] if args.drift != DEFAULT_DRIFT else [])
 
 
-def load(path: str) -> tuple[Recording, str]:
-    """The thrust-stand channels of a log, and a note if the log was cut short."""
+def load(path: str, quiet: bool = False) -> tuple[Recording, str]:
+    """The thrust-stand channels of a log, and a note if the log was cut short; `quiet`:
+    no progress bar (--json)."""
     import numpy as np
 
+    from leveler.cli.progress import fraction, reading
     from leveler.log.reader import partial_note, read_log
     from leveler.procedures.stiffness_log import Recording
 
-    log = read_log(path)
+    with reading(path, quiet=quiet) as b:
+        log = read_log(path, fraction(b))
     stand = log.thrust_stand
     if not stand or len(stand["t_s"]) == 0:
         raise ValueError(f"{path} has no thrust-stand channels (/leveler/thrust_stand): import "
@@ -215,7 +218,7 @@ def run(args: argparse.Namespace) -> int:
             if not getattr(args, name) >= 0:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 0")
         order = drift_order(args.drift)
-        rec, note = load(args.log)
+        rec, note = load(args.log, quiet=args.json)
         fit = fit_recording(rec, args.arm_m, drift_order=order,
                             thrust_n=None if args.thrust_n is None else args.thrust_n[0],
                             arm_sigma_m=args.arm_sigma_m,

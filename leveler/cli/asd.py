@@ -161,6 +161,7 @@ def _short_labels(paths: list[str]) -> dict[str, str]:
 
 def run(args: argparse.Namespace) -> int:
     from leveler.analysis.spectral import lpsd
+    from leveler.cli.progress import fraction, reading
     from leveler.log.reader import partial_note, read_log
 
     curves: list[tuple[str, Spectrum]] = []
@@ -168,7 +169,8 @@ def run(args: argparse.Namespace) -> int:
     labels = _short_labels(paths)
     unit = ""
     for path in paths:
-        log = read_log(path)
+        with reading(path, quiet=args.json) as b:
+            log = read_log(path, fraction(b))
         unit = unit or log.units.get(args.channel, "")
         x, fs = channel(log, args.channel, path)
         if not log.complete:

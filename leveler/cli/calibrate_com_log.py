@@ -157,11 +157,13 @@ def write_model(args: argparse.Namespace, base_text: str, fit: PendulumFit) -> N
 def run(args: argparse.Namespace) -> int:
     """Find the drive lines where the loop was open, fit the pendulum, print or --json."""
     from leveler.analysis.predict import load_measured
+    from leveler.cli.progress import fraction, reading
     from leveler.errors import LogError
     from leveler.procedures.drive_lines import drive_spans, measure
     from leveler.procedures.pendulum_fit import fit_pendulum
 
-    meas = load_measured(args.log, args.model)
+    with reading(args.log, quiet=args.json) as b:
+        meas = load_measured(args.log, args.model, fraction(b))
     if not meas.model_text:
         raise LogError(f"{args.log}: the log carries no config (imported?): give --model "
                        "CONFIG with the pendulum's mass and inertia, which turn its response "

@@ -17,6 +17,7 @@ if TYPE_CHECKING:
     from leveler.analysis.diagnose import Candidate, Diagnosis
     from leveler.analysis.nullcal import NullCalibration
     from leveler.analysis.predict import Measured
+    from leveler.cli.progress import Stages
     from leveler.sim.effects import Effect
     from leveler.sim.params import PlantParams
 
@@ -317,7 +318,8 @@ def _nm(v: float | None) -> str:
     return "n/a" if v is None else f"{v * 1e9:.3g}"
 
 
-def null_calibration(meas: Measured, runs: int, jobs: int | None) -> NullCalibration | None:
+def null_calibration(meas: Measured, runs: int, jobs: int | None,
+                     progress: Stages) -> NullCalibration | None:
     """The cached calibration for this log's model and shape, made now (and cached) if
     `runs` asks for more runs than the cache holds; None without either."""
     from leveler.analysis import nullcal
@@ -329,7 +331,7 @@ def null_calibration(meas: Measured, runs: int, jobs: int | None) -> NullCalibra
     if runs == 0 or (cached is not None and cached.runs >= runs):
         return cached
     cal = nullcal.calibrate(meas, runs, jobs=max(jobs or os.cpu_count() or 1, 1), key=key,
-                            progress=nullcal.report_progress)
+                            progress=lambda done, total: progress("null calibration", done, total))
     path = nullcal.save(cal)
     print(f"leveler diagnose: null calibration of {runs} runs in {cal.wall_s:.0f} s "
           f"cached in {path}", file=sys.stderr)
@@ -339,18 +341,21 @@ def null_calibration(meas: Measured, runs: int, jobs: int | None) -> NullCalibra
 def run(args: argparse.Namespace) -> int:
     from leveler.analysis.diagnose import diagnose
     from leveler.analysis.predict import load_measured
+    from leveler.cli.progress import Stages, fraction, reading
     from leveler.daemon.persist import write_atomic
     from leveler.log.reader import partial_note
     from leveler.settings import load_config
 
-    meas = load_measured(args.log, args.model)
+    with reading(args.log, quiet=args.json) as b:
+        meas = load_measured(args.log, args.model, fraction(b))
     if meas.incomplete:
         print(f"leveler diagnose: {partial_note(args.log, meas.incomplete, len(meas.y_m))}",
               file=sys.stderr)
-    cal = null_calibration(meas, args.null_runs, args.jobs)
-    d = diagnose(meas, max_effects=args.max_effects,
-                 thresholds=None if cal is None else cal.thresholds,
-                 jobs=max(args.jobs or os.cpu_count() or 1, 1))
+    with Stages("diagnose", quiet=args.json) as stages:
+        cal = null_calibration(meas, args.null_runs, args.jobs, stages)
+        d = diagnose(meas, max_effects=args.max_effects,
+                     thresholds=None if cal is None else cal.thresholds,
+                     jobs=max(args.jobs or os.cpu_count() or 1, 1), progress=stages)
     model_out = None
     if d.effects:
         out = Path(args.model_out) if args.model_out else default_model_path(args.log)

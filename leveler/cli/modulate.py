@@ -144,10 +144,12 @@ def _on_daemon(args: argparse.Namespace) -> dict[str, Any]:
 def _recorded(args: argparse.Namespace) -> int:
     """Every square wave found in the log where the loop was open, measured as a run is."""
     from leveler.analysis.predict import load_measured
+    from leveler.cli.progress import fraction, reading
     from leveler.errors import LogError
     from leveler.procedures.tilt_modulation import analyze, square_waves
 
-    meas = load_measured(args.log, args.model)
+    with reading(args.log, quiet=args.json) as b:
+        meas = load_measured(args.log, args.model, fraction(b))
     usable = None if meas.engaged is None else ~meas.engaged
     waves = square_waves(meas.t_s, meas.u_v, usable)
     if not waves:

@@ -47,9 +47,11 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
 def run(args: argparse.Namespace) -> int:
     from leveler.analysis.predict import load_measured
     from leveler.analysis.replay import plot_replay, replay, write_replay_log
+    from leveler.cli.progress import fraction, reading
     from leveler.log.reader import partial_note
 
-    meas = load_measured(args.log, args.model)
+    with reading(args.log, quiet=args.json) as b:
+        meas = load_measured(args.log, args.model, fraction(b))
     if meas.incomplete:
         print(f"leveler replay: {partial_note(args.log, meas.incomplete, len(meas.y_m))}",
               file=sys.stderr)

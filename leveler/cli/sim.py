@@ -35,7 +35,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
 
 def run(args: argparse.Namespace) -> int:
     from leveler.analysis.spectral import REPORT_FREQS_HZ, asd_or_none
-    from leveler.cli.progress import ProgressBar
+    from leveler.cli.progress import bar, fraction
     from leveler.log.writer import LogWriter
     from leveler.settings import load_config
     from leveler.virtual import run_virtual
@@ -53,17 +53,16 @@ def run(args: argparse.Namespace) -> int:
                                      "config_path": str(Path(args.config).resolve()),
                                      "version": __version__, "seed": str(seed),
                                      "duration_s": repr(args.duration), "mode": "sim"})
-    bar = ProgressBar("closed loop", args.duration)
+    hours = 1 / 3600
     try:
-        closed = run_virtual(cfg, args.duration, seed, engaged=True,
-                             writer=writer, progress=bar)
-        bar.done()
+        with bar("closed loop", args.duration, "h", quiet=args.json, scale=hours) as b:
+            closed = run_virtual(cfg, args.duration, seed, engaged=True,
+                                 writer=writer, progress=fraction(b))
     finally:
         if writer is not None:
             writer.close()
-    bar = ProgressBar("open loop  ", args.duration)
-    opened = run_virtual(cfg, args.duration, seed, engaged=False, progress=bar)
-    bar.done()
+    with bar("open loop  ", args.duration, "h", quiet=args.json, scale=hours) as b:
+        opened = run_virtual(cfg, args.duration, seed, engaged=False, progress=fraction(b))
     asd_closed, asd_open = ({"sensor_m_rthz": asd_or_none(r.sensor_m, fs),
                              "tilt_rad_rthz": asd_or_none(r.tilt_rad, fs)}
                             for r in (closed, opened))

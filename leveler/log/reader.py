@@ -17,7 +17,7 @@ import os
 import re
 import struct
 import zlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, fields
 from io import BytesIO
 from pathlib import Path
@@ -118,6 +118,8 @@ class _Scan:
         self.complete = False
         self.stop_reason = ""
         self.summary_messages: int | None = None  # the count the writer put in the summary
+        self.size = 0  # bytes in the file when the scan began
+        self.position = 0  # bytes scanned so far: progress through a long log
 
     def records(self) -> Iterator[McapRecord | _Messages]:
         try:
@@ -135,7 +137,8 @@ class _Scan:
                     what = f"starts with {head!r}"
                 raise LogError(f"{self.path}: not an MCAP file ({what}); give a log written "
                                "by `leveler run` or `leveler sim`")
-            yield from self._records(f, os.fstat(f.fileno()).st_size)
+            self.size = os.fstat(f.fileno()).st_size
+            yield from self._records(f, self.size)
 
     def _records(self, f: IO[bytes], size: int) -> Iterator[McapRecord | _Messages]:
         pos = len(_MAGIC)
@@ -172,6 +175,7 @@ class _Scan:
                 self.stop_reason = f"record at byte {pos} unreadable: {str(e) or type(e).__name__}"
                 return
             pos += _RECORD.size + length
+            self.position = pos
 
 
 def _split(data: bytes) -> Iterator[McapRecord | _Messages]:
@@ -261,8 +265,9 @@ def _schema_units(data: bytes) -> dict[str, str]:
     return out
 
 
-def read_log(path: str | Path) -> LogData:
-    """Read every readable message of a log; a truncated file gives complete=False."""
+def read_log(path: str | Path, progress: Callable[[float], None] | None = None) -> LogData:
+    """Read every readable message of a log; a truncated file gives complete=False.
+    `progress` is told the fraction of the file read, a chunk at a time."""
     scan = _Scan(path)
     tables = {SAMPLE_TOPIC: _Table(Sample), TRUTH_TOPIC: _Table(Truth), EVENT_TOPIC: _Table(Event),
               ENVIRONMENT_TOPIC: _Table(Environment), THRUST_STAND_TOPIC: _Table(ThrustStand)}
@@ -281,12 +286,16 @@ def read_log(path: str | Path) -> LogData:
                         table.payloads += [m[1] for m in messages]
                 tables[SAMPLE_TOPIC].convert(_BATCH)
                 tables[TRUTH_TOPIC].convert(_BATCH)
+                if progress is not None:
+                    progress(scan.position / scan.size)
             elif isinstance(record, Channel) and record.topic in tables:
                 by_channel[record.id] = tables[record.topic]
             elif isinstance(record, Metadata):
                 metadata[record.name] = dict(record.metadata)
             elif isinstance(record, Schema):
                 units |= _schema_units(record.data)
+        if progress is not None:
+            progress(1.0)
         events = tables[EVENT_TOPIC]
         event_list = [
             {"log_time_ns": t} | orjson.loads(data)
