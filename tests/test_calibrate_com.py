@@ -10,7 +10,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from figure_capture import saved_figures
 
+from leveler.cli.calibrate_com import plot
 from leveler.cli.main import main
 from leveler.procedures.calibrate_com import (
     ComResult,
@@ -89,3 +91,28 @@ def test_cli_help_json_and_plot(tmp_path: Path, capsys: pytest.CaptureFixture[st
     assert r["max_abs_relative_error"] < 0.10
     assert r["drive"]["tilt_frequency_hz"] == 0.1 and r["drive"]["force_frequency_hz"] == 0.11
     assert png.stat().st_size > 10_000
+
+
+def test_plot_zooms_in_on_the_two_drive_lines(results: list[ComResult], tmp_path: Path,
+                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """0.10 and 0.11 Hz are one spot on the log axis: an inset must tell them apart."""
+    figures = saved_figures(monkeypatch)
+    drive = {"tilt_amplitude_rad": 25e-6, "tilt_frequency_hz": 0.1,
+             "force_amplitude_n": 1e-6, "force_frequency_hz": 0.11}
+    plot(results, 5.0, str(tmp_path / "fig11.png"), drive)
+    [fig] = figures
+    [ax] = fig.axes
+    [inset] = ax.child_axes
+    lo, hi = inset.get_xlim()
+    main_lo, main_hi = ax.get_xlim()
+    assert lo < 0.1 and 0.11 < hi
+    assert np.log(hi / lo) < 0.1 * np.log(main_hi / main_lo)
+    assert inset.get_xlabel().endswith("[Hz]") and inset.get_ylabel().endswith("[m/√Hz]")
+    # Every counterweight position is in the inset, and there the lines are apart: the
+    # f1 (tilt) line grows with the offset (1 to 5 mm), the f2 (force) line stays.
+    assert len(inset.get_lines()) == len(results)
+    f, first = inset.get_lines()[0].get_data()
+    last = inset.get_lines()[-1].get_ydata()
+    near_f1, near_f2 = np.abs(f - 0.1) < 2e-3, np.abs(f - 0.11) < 2e-3
+    assert last[near_f1].max() > 3 * first[near_f1].max()
+    assert last[near_f2].max() == pytest.approx(first[near_f2].max(), rel=0.1)

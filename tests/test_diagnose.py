@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from figure_capture import legend_texts, saved_figures
 from threadpoolctl import threadpool_limits
 
 from leveler.analysis.diagnose import diagnose, gap
@@ -216,13 +217,18 @@ def test_null_logs_stay_empty(seed: int, tmp_path: Path) -> None:
 
 
 def test_cli_json_contract_report_and_fitted_model(tmp_path: Path,
-                                                    capsys: pytest.CaptureFixture[str]) -> None:
+                                                    capsys: pytest.CaptureFixture[str],
+                                                    monkeypatch: pytest.MonkeyPatch) -> None:
     cfg, text = load_config(REPO / "config" / "sim.toml")
     truth = PeriodicDisturbance(shape="sawtooth", period_s=287.0, peak_to_peak_rad=2.4e-7,
                                 phase_s=31.0)
     log = tmp_path / "night.mcap"
     make_measured(log, cfg, text, truth, duration_s=3 * 3600, seed=3)
+    figures = saved_figures(monkeypatch)
     assert main(["diagnose", str(log), "--json", "--report", str(tmp_path / "rep")]) == 0
+    asd, series = (legend_texts(fig) for fig in figures)
+    assert asd == ["residual, nominal model", "residual, fitted model"]
+    assert series == ["measured", "fitted model", *asd]
     out = json.loads(capsys.readouterr().out)
     assert set(out) >= {"effects", "gap_before", "gap_after", "model_out"}
     assert [e["name"] for e in out["effects"]] == ["periodic_disturbance"]
@@ -259,13 +265,20 @@ def test_cli_json_contract_report_and_fitted_model(tmp_path: Path,
 
 
 def test_cli_says_so_when_nothing_is_missing(tmp_path: Path,
-                                             capsys: pytest.CaptureFixture[str]) -> None:
+                                             capsys: pytest.CaptureFixture[str],
+                                             monkeypatch: pytest.MonkeyPatch) -> None:
     cfg, text = load_config(REPO / "config" / "sim.toml")
     log = tmp_path / "quiet.mcap"
     make_measured(log, cfg, text, None, duration_s=2 * 3600, seed=4)
-    assert main(["diagnose", str(log)]) == 0
+    figures = saved_figures(monkeypatch)
+    assert main(["diagnose", str(log), "--report", str(tmp_path / "rep")]) == 0
     assert "no missing effect found" in capsys.readouterr().out
     assert not (tmp_path / "quiet.fitted.toml").exists()
+    # ... and the report's plots draw the one model there is, saying it is both.
+    same = "nominal = fitted model (no effect found)"
+    asd, series = (legend_texts(fig) for fig in figures)
+    assert asd == [f"residual, {same}"]
+    assert series == ["measured", same, f"residual, {same}"]
 
 
 def _imported(tmp_path: Path, effect: Effect | None, capsys: pytest.CaptureFixture[str],

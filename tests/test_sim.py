@@ -10,7 +10,9 @@ from typing import Any
 
 import numpy as np
 import pytest
+from figure_capture import legend_texts, saved_figures
 
+from leveler.cli.main import main
 from leveler.log.reader import read_log
 
 REPO = Path(__file__).resolve().parents[1]
@@ -86,3 +88,35 @@ def test_short_run_reports_what_it_can(tmp_path: Path) -> None:
     assert proc.returncode == 0, proc.stderr
     assert "0.1 mHz" in proc.stdout and "too short" in proc.stdout
     assert "10.0 mHz" in proc.stdout
+
+
+def test_plot_shows_sensor_and_true_tilt_against_the_paper(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two log-log panels on one frequency axis, units on every axis, the paper's Fig. 15
+    point on the sensor panel and the gains with units in the title."""
+    figures = saved_figures(monkeypatch)
+    png = tmp_path / "sim.png"
+    assert main(["sim", "--config", str(REPO / "config" / "sim.toml"), "--duration", "2h",
+                 "--seed", "3", "--json", "--plot", str(png)]) == 0
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    [fig] = figures
+    sensor, tilt = fig.axes
+    assert sensor.get_ylabel().endswith("[m/√Hz]") and tilt.get_ylabel().endswith("[rad/√Hz]")
+    assert tilt.get_xlabel() == "Frequency [Hz]"
+    assert sensor.get_shared_x_axes().joined(sensor, tilt)
+    assert {ax.get_xscale() for ax in fig.axes} == {ax.get_yscale() for ax in fig.axes} == {"log"}
+    paper = {line.get_label(): (line.get_xdata()[0], line.get_ydata()[0])
+             for line in sensor.get_lines() if line.get_label().startswith("paper")}
+    assert paper == {"paper, open 5.7 µm/√Hz": (1e-4, 5.7e-6),
+                     "paper, closed 0.28 µm/√Hz": (1e-4, 2.8e-7)}
+    assert sensor.get_xlim()[0] <= 1e-4  # the point is on the plot though 2 h do not reach it
+    assert legend_texts(fig) == ["open loop", "closed loop", *paper, "open loop", "closed loop"]
+    # Panel (b) is the truth, not the sensor again: the loop removes more of the reading
+    # than of the tilt it stands for (out of loop, at 1 mHz: 56x, in loop: 590x).
+    (so, sc), (to, tc) = ([np.interp(1e-3, *line.get_data()) for line in ax.get_lines()[:2]]
+                          for ax in (sensor, tilt))
+    assert to / tc > 10
+    assert so / sc > 3 * (to / tc)
+    title = fig.get_suptitle()
+    for text in ("2 h", "seed 3", "V/m", "V/(m s)", "V s/m", "2.2×10$^{7}$"):
+        assert text in title

@@ -113,12 +113,18 @@ def report(r: dict) -> str:
 
 
 def plot(results: list[ComResult], fs_hz: float, path: str, drive: dict) -> None:
+    """Fig. 11: the ASD per counterweight position, with an inset around the two drive
+    lines (10 mHz apart at 0.1 Hz, one spot on the log axis) reaching half their spacing
+    beyond each, so the f1 line's growth against the constant f2 line shows."""
     from leveler.analysis.plots import plot_asd
     from leveler.procedures.calibrate_com import figure_spectrum
 
     curves = [(f"counterweight at {r.counterweight_offset_m * 1e3:g} mm",
                figure_spectrum(r.displacement_m, fs_hz)) for r in results]
+    f_lo, f_hi = sorted((drive["tilt_frequency_hz"], drive["force_frequency_hz"]))
+    margin = (f_hi - f_lo) / 2
     plot_asd(curves, path, ylabel="End displacement ASD [m/√Hz]",
+             zoom_hz=(f_lo - margin, f_hi + margin),
              title=f"CoM calibration: pitch {drive['tilt_amplitude_rad'] * 1e6:g} urad at "
              f"{drive['tilt_frequency_hz']:g} Hz + force {drive['force_amplitude_n'] * 1e6:g} uN "
              f"at {drive['force_frequency_hz']:g} Hz (cf. paper Fig. 11)")

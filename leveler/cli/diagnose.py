@@ -254,30 +254,41 @@ def write_report(directory: Path, d: Diagnosis, meas: Measured, text: str,
     from leveler.analysis.spectral import lpsd
 
     directory.mkdir(parents=True, exist_ok=True)
-    before = Predictor(meas.config.plant, meas)
-    after = Predictor(d.params or meas.config.plant, meas)
-    after.rebase(d.model)
     start = int((d.span_s[0] - meas.t_s[0]) / meas.dt_s)
     span = slice(start, len(meas.y_m))
-    r0, r1 = residual(meas, before, span), residual(meas, after, span)
+    r0 = residual(meas, Predictor(meas.config.plant, meas), span)
+    # Without an effect the model is left as it is (nothing is written, whatever the
+    # in-tolerance recalibration moved): one model to draw, not a "fitted" twin of it.
+    if d.effects:
+        after = Predictor(d.params or meas.config.plant, meas)
+        after.rebase(d.model)
+        r1 = residual(meas, after, span)
+        residuals = {"nominal model": r0, "fitted model": r1}
+        fitted = "fitted model"
+    else:
+        r1 = r0
+        fitted = ("nominal = fitted model "
+                  f"(no effect {'found' if d.candidates else 'searched for'})")
+        residuals = {fitted: r0}
     fs = 1.0 / meas.dt_s
 
-    plot_asd([("residual, nominal model", lpsd(r0, fs)),
-              ("residual, fitted model", lpsd(r1, fs))], directory / "residual_asd.png",
+    plot_asd([(f"residual, {name}", lpsd(r, fs)) for name, r in residuals.items()],
+             directory / "residual_asd.png",
              ylabel="residual ASD [m/√Hz]", title=f"diagnose: {Path(meas.path).name}")
 
     fig = Figure(figsize=(9, 6), layout="constrained")
     FigureCanvasAgg(fig)
     top, bottom = fig.subplots(2, 1, sharex=True)
     y = meas.y_m[span] - meas.y_m[span].mean()
-    t, avg = block_means(meas.t_s[span] / 3600, y, y - r1 + r1.mean(), r0, r1)
-    top.plot(t, avg[0] * 1e9, lw=0.8, label="measured")
-    top.plot(t, avg[1] * 1e9, lw=0.8, label="fitted model")
+    t, (measured, model, *averaged) = block_means(meas.t_s[span] / 3600, y,
+                                                  y - r1 + r1.mean(), *residuals.values())
+    top.plot(t, measured * 1e9, lw=0.8, label="measured")
+    top.plot(t, model * 1e9, lw=0.8, label=fitted)
     top.set_ylabel("sensor [nm]")
     top.legend()
     top.set_title(f"{Path(meas.path).name}: {(t[1] - t[0]) * 3600:.0f} s averages")
-    bottom.plot(t, avg[2] * 1e9, lw=0.8, label="residual, nominal")
-    bottom.plot(t, avg[3] * 1e9, lw=0.8, label="residual, fitted")
+    for name, r in zip(residuals, averaged, strict=True):
+        bottom.plot(t, r * 1e9, lw=0.8, label=f"residual, {name}")
     bottom.set_xlabel("time [h]")
     bottom.set_ylabel("residual [nm]")
     bottom.legend()

@@ -80,13 +80,10 @@ def run(args: argparse.Namespace) -> int:
         },
     }
     if args.plot:
-        from leveler.analysis.plots import plot_asd
-        from leveler.analysis.spectral import lpsd
+        from leveler.analysis.plots import plot_sim
 
-        curves = [("open loop", lpsd(opened.sensor_m, fs)),
-                  ("closed loop", lpsd(closed.sensor_m, fs))]
-        plot_asd(curves, args.plot, ylabel="Pendulum-end displacement ASD [m/√Hz]",
-                 title=f"leveler sim: {args.duration / 3600:g} h, seed {seed}")
+        plot_sim(opened, closed, fs, args.plot, controller=cfg.controller,
+                 duration_s=args.duration, seed=seed)
     if args.json:
         print(json.dumps(result))
     else:
