@@ -7,7 +7,7 @@ CONFIG ?= config/sim.toml
 
 INSTALL_PYTHON ?= /usr/bin/python3
 
-.PHONY: run test test-slow bench bench-modbus lint clean install constraints systemd-deps device-deps test-systemd
+.PHONY: run test docs test-slow bench bench-modbus lint clean install constraints systemd-deps device-deps test-systemd
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null || { echo "need $(PYTHON) (apt-get install python3 python3-venv)"; exit 1; }
@@ -26,6 +26,11 @@ test: $(STAMP) device-deps
 	$(BIN)/ruff check .
 	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 \
 	  $(BIN)/python -m pytest -q -m "not slow and not systemd" -n auto --dist loadfile
+
+# Every `$ ...` transcript in README.md and docs/*.md rerun and rewritten (docs/examples.py,
+# about a minute); make test fails when one drifts beyond its stated tolerance.
+docs: $(STAMP)
+	$(BIN)/python docs/examples.py
 
 test-slow: $(STAMP)
 	$(BIN)/python -m pytest -q -m slow
