@@ -69,7 +69,8 @@ class DaemonProc:
 
 def daemon_config(tmp_path: Path, sock: Path, *, rate_hz: float = 50.0, sim: str = "",
                   engage: bool = True, base: str = "sim.toml",
-                  replace: dict[str, str] | None = None, control: str = "") -> Path:
+                  replace: dict[str, str] | None = None, control: str = "",
+                  edit: Callable[[str], str] | None = None) -> Path:
     cfg = (REPO / "config" / base).read_text()
     for old, new in (replace or {}).items():
         assert old in cfg, old
@@ -81,6 +82,8 @@ def daemon_config(tmp_path: Path, sock: Path, *, rate_hz: float = 50.0, sim: str
         cfg = cfg.replace("engage_on_start = true", "engage_on_start = false")
     cfg = cfg.replace("[sim]\nseed = 1\n", f"[sim]\nseed = 1\n{sim}\n")
     cfg += f'\n[control]\nsocket_path = "{sock}"\n{control}'
+    if edit is not None:  # another form of the same config (dotted keys, inline tables)
+        cfg = edit(cfg)
     path = tmp_path / "daemon.toml"
     path.write_text(cfg)
     return path
@@ -89,17 +92,19 @@ def daemon_config(tmp_path: Path, sock: Path, *, rate_hz: float = 50.0, sim: str
 @pytest.fixture
 def start_daemon(tmp_path: Path) -> Iterator:  # type: ignore[type-arg]
     """Factory: start_daemon(rate_hz=..., sim='hang_at_s = 3.0', env={...}, base='x.toml',
-    replace={'old text': 'new text'}, control='idle_timeout_s = 2.0\n') -> DaemonProc."""
+    replace={'old text': 'new text'}, control='idle_timeout_s = 2.0\n', edit=fn) ->
+    DaemonProc."""
     started: list[DaemonProc] = []
     short = Path(tempfile.mkdtemp(prefix="lv", dir="/tmp"))  # AF_UNIX paths are short
 
     def start(*, rate_hz: float = 50.0, sim: str = "", engage: bool = True,
               env: dict[str, str] | None = None, wait_socket: bool = True,
               base: str = "sim.toml", replace: dict[str, str] | None = None,
-              control: str = "", umask: int | None = None) -> DaemonProc:
+              control: str = "", umask: int | None = None,
+              edit: Callable[[str], str] | None = None) -> DaemonProc:
         sock = short / f"c{len(started)}.sock"
         config = daemon_config(tmp_path, sock, rate_hz=rate_hz, sim=sim, engage=engage,
-                               base=base, replace=replace, control=control)
+                               base=base, replace=replace, control=control, edit=edit)
         proc = subprocess.Popen(
             [sys.executable, "-m", "leveler.cli", "run", "--config", str(config)],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=tmp_path,

@@ -63,6 +63,36 @@ def test_status_start_stop_through_the_cli(start_daemon) -> None:  # type: ignor
     assert any(k == "state" and r.startswith("stop by uid") for k, r in events)
 
 
+def dotted_controller(text: str) -> str:
+    """The same config with [controller] written as dotted keys at the top of the file."""
+    head, _, rest = text.partition("[controller]")
+    body, _, tail = rest.partition("\n[")
+    keys = [f"controller.{line}" for line in body.splitlines()[1:]
+            if line and not line.startswith("#")]
+    return "\n".join(keys) + "\n" + head + "[" + tail
+
+
+def test_tune_persist_keeps_a_dotted_key_config_valid_and_dotted(start_daemon) -> None:  # type: ignore[no-untyped-def]
+    """Issue 19: a valid config with `controller.ki_v_per_m_s = ...` once came out of
+    `tune --persist` with a second [controller] table, failed validation, and nothing was
+    saved. Through the real daemon: the value is saved, the form kept, and it reloads."""
+    d = start_daemon(edit=dotted_controller)
+    assert "[controller]" not in d.config.read_text()
+    d.wait_status_lines(1)
+    persisted = d.cli("tune", "--ki", "2.0e7", "--persist")
+    assert persisted.returncode == 0 and "written to the config file" in persisted.stdout
+    text = d.config.read_text()
+    assert "[controller]" not in text
+    assert text.count("controller.ki_v_per_m_s") == 1
+    assert "controller.kd_v_s_per_m = 1.9e6" in text  # the untouched keys as they were
+    cfg, _ = load_config(d.config)
+    assert cfg.controller.ki_v_per_m_s == 2.0e7
+    reload = d.cli("reload")
+    assert reload.returncode == 0, reload.stderr
+    assert status(d)["controller"]["ki_v_per_m_s"] == 2.0e7
+    d.stop()
+
+
 def test_tune_is_bumpless_validated_and_persisted(start_daemon) -> None:  # type: ignore[no-untyped-def]
     # The slow integral-only loop: the default's unfiltered D moves the command by ~0.6 V
     # rms per cycle at 50 Hz on sensor noise alone, which would drown the step looked for.
