@@ -48,6 +48,7 @@ class Measured:
     controller: ControllerConfig | None = None  # as logged (None: not a leveler log)
     engaged: np.ndarray | None = None  # per sample: was the loop closed?
     incomplete: str = ""  # why the log is incomplete, as read_log says ("" if it is not)
+    live: bool = False  # still being written: read as a stream (read_log)
 
     @property
     def dt_s(self) -> float:
@@ -124,7 +125,8 @@ def load_measured(path: str | Path, model: str | Path | None = None,
     c = logged.controller
     return Measured(path, Signals(t, dt, temp), u, y, cfg, source, text, nbad,
                     (c.kp_v_per_m, c.ki_v_per_m_s, c.kd_v_s_per_m),
-                    c if logged_text else None, s["state"] == "engaged", data.stop_reason)
+                    c if logged_text else None, s["state"] == "engaged", data.stop_reason,
+                    data.live)
 
 
 #: the last log `excitation_v` was asked about and its answer: a diagnosis asks four times

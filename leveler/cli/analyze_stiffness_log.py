@@ -70,7 +70,7 @@ def load(path: str, quiet: bool = False) -> tuple[Recording, str]:
     elif not np.isfinite(tilt).all():
         raise ValueError(f"{path}: the tilt is missing in {int((~np.isfinite(tilt)).sum())} "
                          "samples")
-    note = "" if log.complete else partial_note(path, log.stop_reason, len(t))
+    note = "" if log.complete else partial_note(path, log.stop_reason, len(t), log.live)
     return Recording(t, f, x, tilt), note
 
 

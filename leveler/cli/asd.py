@@ -174,7 +174,7 @@ def run(args: argparse.Namespace) -> int:
         unit = unit or log.units.get(args.channel, "")
         x, fs = channel(log, args.channel, path)
         if not log.complete:
-            print(f"leveler asd: {partial_note(path, log.stop_reason, len(x))}",
+            print(f"leveler asd: {partial_note(path, log.stop_reason, len(x), log.live)}",
                   file=sys.stderr)
         total = len(x)
         x, bridged = bridge_gaps(x, fs, args.channel, path)

@@ -360,8 +360,8 @@ def run(args: argparse.Namespace) -> int:
     with reading(args.log, quiet=args.json) as b:
         meas = load_measured(args.log, args.model, fraction(b))
     if meas.incomplete:
-        print(f"leveler diagnose: {partial_note(args.log, meas.incomplete, len(meas.y_m))}",
-              file=sys.stderr)
+        note = partial_note(args.log, meas.incomplete, len(meas.y_m), meas.live)
+        print(f"leveler diagnose: {note}", file=sys.stderr)
     with Stages("diagnose", quiet=args.json) as stages:
         cal = null_calibration(meas, args.null_runs, args.jobs, stages)
         d = diagnose(meas, max_effects=args.max_effects,

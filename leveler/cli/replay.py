@@ -53,8 +53,8 @@ def run(args: argparse.Namespace) -> int:
     with reading(args.log, quiet=args.json) as b:
         meas = load_measured(args.log, args.model, fraction(b))
     if meas.incomplete:
-        print(f"leveler replay: {partial_note(args.log, meas.incomplete, len(meas.y_m))}",
-              file=sys.stderr)
+        note = partial_note(args.log, meas.incomplete, len(meas.y_m), meas.live)
+        print(f"leveler replay: {note}", file=sys.stderr)
     try:
         result, pred, span = replay(meas, args.gains, args.drift)
     except ValueError as exc:

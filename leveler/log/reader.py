@@ -13,6 +13,8 @@ than messages are still parsed by mcap's record classes.
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import os
 import re
 import struct
@@ -41,6 +43,7 @@ TRUTH_TOPIC = "/leveler/truth"
 ENVIRONMENT_TOPIC = "/leveler/environment"
 THRUST_STAND_TOPIC = "/leveler/thrust_stand"
 EVENT_TOPIC = "/leveler/event"
+FOXGLOVE_LOG_TOPIC = "/leveler/log"  # the events again, as foxglove.Log for its Log panel
 METADATA_NAME = "leveler"
 
 _MAGIC = b"\x89MCAP0\r\n"
@@ -76,6 +79,27 @@ class LogData:
     environment: dict[str, np.ndarray] = field(default_factory=dict)
     thrust_stand: dict[str, np.ndarray] = field(default_factory=dict)
     units: dict[str, str] = field(default_factory=dict)  # field -> unit, from the schemas
+    live: bool = False  # a running writer holds the file: read up to its last whole chunk
+
+
+def hold(f: IO[bytes]) -> None:
+    """Mark `f` as being written, for as long as it stays open (the kernel drops the lock
+    when the writer closes it or dies): readers tell a live log from one a crash cut short.
+    A hint only: where the filesystem has no flock, a live log reads as a cut one."""
+    with contextlib.suppress(OSError):
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+
+
+def _held(f: IO[bytes]) -> bool:
+    """Whether a writer holds `f` (hold); probed without waiting and let go at once."""
+    try:
+        fcntl.flock(f.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    except OSError:
+        return False
+    fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+    return False
 
 
 def _decompress(body: bytes) -> bytes:
@@ -119,6 +143,7 @@ class _Scan:
         self.stop_reason = ""
         self.summary_messages: int | None = None  # the count the writer put in the summary
         self.size = 0  # bytes in the file when the scan began
+        self.live = False  # a writer held the file when the scan began
         self.position = 0  # bytes scanned so far: progress through a long log
 
     def records(self) -> Iterator[McapRecord | _Messages]:
@@ -137,6 +162,7 @@ class _Scan:
                     what = f"starts with {head!r}"
                 raise LogError(f"{self.path}: not an MCAP file ({what}); give a log written "
                                "by `leveler run` or `leveler sim`")
+            self.live = _held(f)
             self.size = os.fstat(f.fileno()).st_size
             yield from self._records(f, self.size)
 
@@ -329,11 +355,16 @@ def read_log(path: str | Path, progress: Callable[[float], None] | None = None) 
         environment=env_cols,
         thrust_stand=stand_cols,
         units=units,
+        live=scan.live and not complete,
     )
 
 
-def partial_note(path: str | Path, stop_reason: str, samples: int) -> str:
-    """What a command says when it used an incomplete log (cut short or damaged)."""
+def partial_note(path: str | Path, stop_reason: str, samples: int, live: bool = False) -> str:
+    """What a command says when it used an incomplete log: one still being written, read
+    as a stream, or one cut short or damaged."""
+    if live:
+        return (f"note: {path} is still being written (a running leveler holds it); read as "
+                f"a stream up to its last complete chunk: {samples} samples")
     return (f"note: {path} is incomplete ({stop_reason}); used its {samples} readable "
             f"samples. `leveler recover {path} --out FIXED.mcap` copies them into a complete "
             "file")
@@ -397,12 +428,14 @@ def recover(src: str | Path, dst: str | Path) -> int:
 __all__ = [
     "ENVIRONMENT_TOPIC",
     "EVENT_TOPIC",
+    "FOXGLOVE_LOG_TOPIC",
     "METADATA_NAME",
     "SAMPLE_TOPIC",
     "THRUST_STAND_TOPIC",
     "TRUTH_TOPIC",
     "LogData",
     "LogError",
+    "hold",
     "partial_note",
     "read_log",
     "recover",

@@ -47,11 +47,13 @@ from mcap.records import (
 from leveler.log.reader import (
     ENVIRONMENT_TOPIC,
     EVENT_TOPIC,
+    FOXGLOVE_LOG_TOPIC,
     METADATA_NAME,
     SAMPLE_TOPIC,
     THRUST_STAND_TOPIC,
     TRUTH_TOPIC,
     LogError,
+    hold,
 )
 from leveler.records import Environment, Event, Sample, ThrustStand, Truth
 from leveler.rt import background_thread
@@ -131,6 +133,46 @@ _EVENT_FIELDS: dict[str, tuple[str, str]] = {
     "reason": ("string", "human-readable cause"),
     "detail": ("object", "kind-specific values"),
 }
+
+
+# Each event again as a foxglove.Log message (the schema Foxglove's Log panel shows, with
+# its severity levels): the field names and types of foxglove-sdk's schemas/jsonschema/Log.
+_FOXGLOVE_LOG_SCHEMA = json.dumps({
+    "title": "foxglove.Log",
+    "description": "A log message",
+    "type": "object",
+    "properties": {
+        "timestamp": {"type": "object", "title": "time",
+                      "properties": {"sec": {"type": "integer", "minimum": 0},
+                                     "nsec": {"type": "integer", "minimum": 0,
+                                              "maximum": 999999999}},
+                      "description": "Timestamp of log message"},
+        "level": {"title": "foxglove.LogLevel", "description": "Log level", "type": "integer",
+                  "oneOf": [{"title": n, "const": v} for n, v in (
+                      ("UNKNOWN", 0), ("DEBUG", 1), ("INFO", 2), ("WARNING", 3), ("ERROR", 4),
+                      ("FATAL", 5))]},
+        "message": {"type": "string", "description": "Log message"},
+        "name": {"type": "string", "description": "Process or node name"},
+        "file": {"type": "string", "description": "Filename"},
+        "line": {"type": "integer", "minimum": 0, "description": "Line number in the file"},
+    },
+}, indent=1).encode()
+_WARNING_KINDS = frozenset({"bad_reading", "reconnect", "clock", "stability", "log", "gap"})
+_ERROR_KINDS = frozenset({"fault", "driver_error"})
+
+
+def foxglove_log(event: Event, log_time_ns: int) -> dict[str, Any]:
+    """`event` as a foxglove.Log message: its kind and reason as the text, a fault (or a
+    state change into one) as ERROR, trouble the loop rides out as WARNING, else INFO."""
+    detail = event.detail if isinstance(event.detail, dict) else {}
+    if event.kind in _ERROR_KINDS or (event.kind == "state" and detail.get("new") == "fault"):
+        level = 4
+    else:
+        level = 3 if event.kind in _WARNING_KINDS else 2
+    return {"timestamp": {"sec": log_time_ns // 1_000_000_000,
+                          "nsec": log_time_ns % 1_000_000_000},
+            "level": level, "message": f"{event.kind}: {event.reason}", "name": "leveler",
+            "file": "", "line": 0}
 
 
 def _schema(title: str, props: dict[str, tuple[str, str]]) -> bytes:
@@ -382,6 +424,7 @@ class LogWriter:
         new = self._path.with_name(self._path.name + ".new")
         try:
             self._file = open(new, "wb")  # owned by the writer thread from here on
+            hold(self._file)
             self._mcap = _McapFile(self._file, _library(), compression, chunk_size)
             self._sample_ch = self._channel(SAMPLE_TOPIC, "leveler.Sample", _SAMPLE_FIELDS)
             self._truth_ch = (
@@ -396,6 +439,8 @@ class LogWriter:
                 if thrust_stand else None
             )
             self._event_ch = self._channel(EVENT_TOPIC, "leveler.Event", _EVENT_FIELDS)
+            self._log_ch = self._mcap.channel(FOXGLOVE_LOG_TOPIC, "foxglove.Log",
+                                              _FOXGLOVE_LOG_SCHEMA)
             self._mcap.metadata(METADATA_NAME, meta)
             self._file.flush()  # header, topics and metadata reach the OS even if we die now
             os.replace(new, self._path)
@@ -629,14 +674,10 @@ class LogWriter:
             for _ in range(n):
                 ch, rec, t = popleft()
                 if ch == event_ch:
-                    data = dumps(rec, default=str, option=_EVENT_OPT)
-                    seq = self._event_seq
-                    self._event_seq += 1
+                    self._put_event(rec, t)
                 else:
-                    data = dumps(rec, option=_RECORD_OPT)
-                    seq = rec.seq & _SEQ_MASK
+                    add(ch, t, dumps(rec, option=_RECORD_OPT), rec.seq & _SEQ_MASK)
                     n_samples += ch == sample_ch
-                add(ch, t, data, seq)
             self._samples_written += n_samples
             self._in_flight = 0
             self._last = (rec.t_s, t)
@@ -711,9 +752,16 @@ class LogWriter:
             detail={"dropped_total": dropped, "max_backlog": self._max_backlog},
         )
         _log.warning("%s: %d records dropped (backlog full)", self._path, dropped)
-        self._mcap.add(self._event_ch, log_time, orjson.dumps(event), self._event_seq)
-        self._event_seq += 1
+        self._put_event(event, log_time)
         self._dropped_logged = dropped
+
+    def _put_event(self, event: Event, log_time: int) -> None:
+        """An event on /leveler/event and, for Foxglove's Log panel, on /leveler/log."""
+        seq = self._event_seq
+        self._mcap.add(self._event_ch, log_time,
+                       orjson.dumps(event, default=str, option=_EVENT_OPT), seq)
+        self._mcap.add(self._log_ch, log_time, orjson.dumps(foxglove_log(event, log_time)), seq)
+        self._event_seq += 1
 
 
 __all__ = ["LogError", "LogWriter"]
