@@ -18,8 +18,11 @@ Baselines, measured in the same benchmark, one after another (never concurrently
 - the same daemon with its log switched off (the loop's sinks emptied): what logging costs.
 - a bare loop on the same `RealtimeClock`, same process set-up and instrumentation, doing
   no work: the floor for a Python loop on this clock.
+- the same logged daemon with its live view on ([live] foxglove on loopback, issue 20) and a
+  real WebSocket client (another process) subscribed to every topic: what watching costs.
 In the full run each is measured in three rounds (cyclictest, daemon, daemon without log,
-bare loop; again), so a change in the load of a shared machine falls on all of them alike.
+daemon with the live view, bare loop; again), so a change in the load of a shared machine
+falls on all of them alike.
 
 Lateness is counted in 1 us bins, as cyclictest counts it; "late cycles" are wake-ups more
 than one period (1000 us) late. The daemon's first tick (after start-up, not after a sleep)
@@ -35,6 +38,7 @@ it: `make bench-soak` is the one-hour run issue 8 asks for.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import ctypes
 import ctypes.util
 import json
@@ -80,10 +84,12 @@ def plan(quick: bool, duration_s: float | None) -> dict[str, float]:
     if duration_s is not None:
         return {"rounds": 1, "cyclictest": min(duration_s, CYCLICTEST_MAX_S),
                 "logged": duration_s, "unlogged": min(duration_s, 36.0),
-                "bare": min(duration_s, 24.0)}
+                "live": min(duration_s, 36.0), "bare": min(duration_s, 24.0)}
     if quick:
-        return {"rounds": 1, "cyclictest": 6.0, "logged": 6.0, "unlogged": 4.0, "bare": 3.0}
-    return {"rounds": 3, "cyclictest": 25.0, "logged": 25.0, "unlogged": 12.0, "bare": 8.0}
+        return {"rounds": 1, "cyclictest": 6.0, "logged": 6.0, "unlogged": 4.0, "live": 6.0,
+                "bare": 3.0}
+    return {"rounds": 3, "cyclictest": 25.0, "logged": 25.0, "unlogged": 12.0, "live": 25.0,
+            "bare": 8.0}
 
 
 # ---- the child: one measured run --------------------------------------------------------
@@ -227,7 +233,7 @@ def child_bare(duration_s: float) -> dict[str, Any]:
 
 def child_main(argv: list[str]) -> int:
     p = argparse.ArgumentParser(prog="loop_timing.py --child")
-    p.add_argument("mode", choices=["logged", "unlogged", "bare"])
+    p.add_argument("mode", choices=["logged", "unlogged", "live", "bare"])
     p.add_argument("--config", type=Path)
     p.add_argument("--duration", type=float, required=True)
     p.add_argument("--priority", type=int, required=True)
@@ -237,22 +243,25 @@ def child_main(argv: list[str]) -> int:
     if a.mode == "bare":
         out = child_bare(a.duration)
     else:
-        out = child_daemon(a.config, a.duration, logged=a.mode == "logged")
+        out = child_daemon(a.config, a.duration, logged=a.mode != "unlogged")
     a.out.write_text(json.dumps({**out, "rt": rt}))
     return 0
 
 
 # ---- the parent: the runs and the table ---------------------------------------------------
 
-def _config(tmp: Path) -> Path:
-    """config/sim.toml at 1 kHz, logging into tmp, its control socket in tmp."""
+def _config(tmp: Path, live_port: int | None = None) -> Path:
+    """config/sim.toml at 1 kHz, logging into tmp, its control socket in tmp; with
+    `live_port`, the live view on loopback at the default 50 Hz."""
     text = (REPO / "config" / "sim.toml").read_text()
     text, n = re.subn(r"^rate_hz = [\d.]+", f"rate_hz = {RATE_HZ}", text, flags=re.M)
     if n != 1:
         raise RuntimeError("config/sim.toml: no `rate_hz = ...` line to set to 1000")
     text = text.replace('dir = "logs"', f'dir = "{tmp / "logs"}"')
     text += f'\n[control]\nsocket_path = "{tmp / "control.sock"}"\n'
-    path = tmp / "sim-1khz.toml"
+    if live_port is not None:
+        text += f'\n[live]\nfoxglove = "127.0.0.1:{live_port}"\n'
+    path = tmp / ("sim-1khz.toml" if live_port is None else "sim-1khz-live.toml")
     path.write_text(text)
     return path
 
@@ -267,18 +276,68 @@ def _rss_kib(pid: int) -> int | None:
     return None
 
 
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def client_main(argv: list[str]) -> int:
+    """A Foxglove client for the live run: subscribes to every topic and reads until the
+    server goes; prints the messages it got per topic as JSON."""
+    import asyncio
+    import struct
+
+    import websockets
+
+    async def read(url: str, timeout_s: float) -> dict[str, int]:
+        deadline = time.monotonic() + timeout_s
+        while True:  # the daemon opens the port after its start-up
+            try:
+                ws = await websockets.connect(url, subprotocols=["foxglove.sdk.v1"])
+                break
+            except OSError:
+                if time.monotonic() > deadline:
+                    raise
+                await asyncio.sleep(0.1)
+        got: dict[str, int] = {}
+        async with ws:
+            chans: dict[int, str] = {}
+            while not chans:
+                m = json.loads(await ws.recv())
+                if m["op"] == "advertise":
+                    chans = {c["id"]: c["topic"] for c in m["channels"]}
+            await ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                {"id": cid, "channelId": cid} for cid in chans]}))
+            with contextlib.suppress(websockets.ConnectionClosed):
+                async for frame in ws:
+                    if isinstance(frame, bytes):
+                        topic = chans[struct.unpack_from("<I", frame, 1)[0]]
+                        got[topic] = got.get(topic, 0) + 1
+        return got
+
+    print(json.dumps(asyncio.run(read(argv[0], float(argv[1])))))
+    return 0
+
+
 def _run_child(mode: str, duration_s: float, priority: int, tmp: Path,
-               config: Path | None = None) -> dict[str, Any]:
-    """One child run; the parent (normal priority, asleep) reads its RSS meanwhile."""
+               config: Path | None = None, live_port: int | None = None) -> dict[str, Any]:
+    """One child run; the parent (normal priority, asleep) reads its RSS meanwhile. With
+    `live_port`, a client process watches the live view all along."""
     out = tmp / f"{mode}.json"
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", mode,
-           "--duration", f"{duration_s!r}s", "--priority", str(priority), "--out", str(out)]
+           "--duration", repr(duration_s), "--priority", str(priority), "--out", str(out)]
     if config is not None:
         cmd += ["--config", str(config)]
     every = 10.0 if duration_s > 600 else 1.0
     rss: list[tuple[float, int]] = []
     with open(tmp / f"{mode}.stdout", "w") as stdout, open(tmp / f"{mode}.stderr", "w+") as err:
         proc = subprocess.Popen(cmd, stdout=stdout, stderr=err, cwd=tmp, env=_CHILD_ENV)
+        client = None if live_port is None else subprocess.Popen(
+            [sys.executable, str(Path(__file__).resolve()), "--client",
+             f"ws://127.0.0.1:{live_port}", "30"], stdout=subprocess.PIPE, text=True)
         t0 = time.monotonic()
         while proc.poll() is None:
             kib = _rss_kib(proc.pid)
@@ -295,9 +354,13 @@ def _run_child(mode: str, duration_s: float, priority: int, tmp: Path,
                 pass
         err.seek(0)
         stderr = err.read()
+    watched: dict[str, int] = {}
+    if client is not None:
+        got, _ = client.communicate(timeout=CHILD_GRACE_S)
+        watched = json.loads(got) if client.returncode == 0 else {}
     if proc.returncode != 0:
         raise RuntimeError(f"{mode} run failed ({proc.returncode}): {stderr[-2000:]}")
-    return {**json.loads(out.read_text()), "rss": rss}
+    return {**json.loads(out.read_text()), "rss": rss, "watched": watched}
 
 
 def run_cyclictest(duration_s: float, priority: int, tmp: Path,
@@ -332,6 +395,9 @@ def _merge(runs: list[dict[str, Any]]) -> dict[str, Any]:
     for key in ("overruns", "samples_written", "dropped"):
         if key in m:
             m[key] = sum(r[key] for r in runs)
+    if "watched" in m:
+        m["watched"] = {t: sum(r["watched"].get(t, 0) for r in runs)
+                        for t in set().union(*(r["watched"] for r in runs))}
     m["late_max_ns"] = max(r["late_max_ns"] for r in runs)
     if "work_cpu_mean_ns" in m:
         n = [sum(r["late_hist"]) for r in runs]
@@ -350,7 +416,7 @@ def measure(quick: bool, duration_s: float | None = None) -> dict[str, Any]:
     prio = unit_priority()
     have_ct = shutil.which("cyclictest") is not None
     runs: dict[str, list[dict[str, Any]]] = {"cyclictest": [], "logged": [], "unlogged": [],
-                                             "bare": []}
+                                             "live": [], "bare": []}
     with tempfile.TemporaryDirectory(prefix="leveler-loop-timing-") as tmp_name:
         tmp = Path(tmp_name)
         config = _config(tmp)
@@ -359,6 +425,9 @@ def measure(quick: bool, duration_s: float | None = None) -> dict[str, Any]:
                 runs["cyclictest"].append(run_cyclictest(pl["cyclictest"], prio, tmp))
             runs["logged"].append(_run_child("logged", pl["logged"], prio, tmp, config))
             runs["unlogged"].append(_run_child("unlogged", pl["unlogged"], prio, tmp, config))
+            port = _free_port()  # a fresh one each round: no wait for the last to be freed
+            runs["live"].append(_run_child("live", pl["live"], prio, tmp, _config(tmp, port),
+                                           port))
             runs["bare"].append(_run_child("bare", pl["bare"], prio, tmp))
     merged: dict[str, Any] = {k: _merge(v) for k, v in runs.items() if v}
     merged.update(plan=pl, priority=prio, quick=quick)
@@ -417,6 +486,7 @@ def rss_growth(rss: list[tuple[float, int]]) -> RssGrowth | None:
 def rows(m: dict[str, Any]) -> list[dict[str, Any]]:
     pl, prio, judge = m["plan"], m["priority"], not m["quick"]
     lg, ul, bare, ct = m["logged"], m["unlogged"], m["bare"], m.get("cyclictest")
+    lv = m["live"]
     rt = lg["rt"]
     out: list[dict[str, Any]] = []
 
@@ -485,6 +555,23 @@ def rows(m: dict[str, Any]) -> list[dict[str, Any]]:
         f"{n} with logging on (p50 {pct_us(lg['gil_late_hist'], 0.5):g} us late; "
         f"{sum(lg['gil_late_hist'][250:])} over 250 us, {late_cycles(lg['gil_late_hist'])} "
         f"over a period), {ugw} of {un} with it off")
+    # What watching costs: the same logged daemon serving a live client.
+    vp99, vn = pct_us(lv["late_hist"], 0.99), lv["cycles"]
+    vlate = late_cycles(lv["late_hist"])
+    r = vp99 / lp99 if lp99 else None
+    watched = ", ".join(f"{t} {n}" for t, n in sorted(lv["watched"].items())) or "nothing"
+    add("lateness p99, live view on vs off", vp99, "us", f"live off {lp99:g}", r, "<= 1.5x",
+        r is not None and r <= 1.5,
+        note=f"[live] foxglove on loopback at 50 Hz, a client in another process subscribed to "
+        f"every topic (messages it got: {watched}); {vn} cycles, {per_1e5(vlate, vn):.3g} late "
+        f"per 1e5 ({vlate}), max {lv['late_max_ns'] / 1000:.0f} us")
+    vw = lv["work_cpu_mean_ns"] / 1000
+    w0 = lg["work_cpu_mean_ns"] / 1000
+    rw = vw / w0 if w0 else None
+    add("CPU per cycle, live view on vs off", vw, "us", f"live off {w0:.2f}", rw, "<= 1.2x",
+        rw is not None and rw <= 1.2,
+        note="thread CPU time around Loop.cycle, mean: the loop's own cost of a sink that "
+        "appends to a deque; the publishing runs on its own thread")
     bp99, bn = pct_us(bare["late_hist"], 0.99), bare["cycles"]
     if ct is not None:
         add("lateness p99, bare Python loop", bp99, "us", f"cyclictest {cp99:g}",
@@ -536,6 +623,8 @@ def run(quick: bool, duration_s: float | None = None) -> list[dict[str, Any]]:
 def main(argv: list[str]) -> int:
     if argv[:1] == ["--child"]:
         return child_main(argv[1:])
+    if argv[:1] == ["--client"]:
+        return client_main(argv[1:])
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="about 25 s instead of about 4 min")
     p.add_argument("--duration", type=float, default=None, metavar="SECONDS",

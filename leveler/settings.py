@@ -13,6 +13,7 @@ from leveler.drivers.modbus_config import ModbusActuatorConfig, ModbusSensorConf
 from leveler.drivers.nidaq_config import NidaqActuatorConfig, NidaqSensorConfig
 from leveler.drivers.serial_config import SerialPiezoConfig, SerialSensorConfig
 from leveler.drivers.simulated import FaultSpec
+from leveler.live.config import LiveConfig
 from leveler.log.rotate import LogConfig
 from leveler.loop.cycle import LoopConfig
 from leveler.loop.pid import ControllerConfig
@@ -84,6 +85,7 @@ class Config:
     actuator: ActuatorConfig = field(default_factory=ActuatorConfig)
     plant: PlantParams = field(default_factory=PlantParams)
     sim: SimConfig = field(default_factory=SimConfig)
+    live: LiveConfig = field(default_factory=LiveConfig)
 
     def __post_init__(self) -> None:
         if (self.sensor.backend == "sim") != (self.actuator.backend == "sim"):

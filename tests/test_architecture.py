@@ -15,7 +15,8 @@ SOURCE_ROOTS = {"leveler": REPO / "leveler", "leveler.drivers": REPO / "drivers/
 #: modules at the root of `leveler`: the shared vocabulary and what composes the wings
 ROOT = {"errors": "kit", "records": "kit", "typed_config": "kit", "rt": "kit", "__init__": "kit",
         "settings": "settings", "stand": "stand", "virtual": "virtual"}
-WINGS = {"loop", "daemon", "log", "analysis", "procedures", "emulate", "cli", "drivers", "sim"}
+WINGS = {"loop", "daemon", "log", "analysis", "procedures", "emulate", "live", "cli", "drivers",
+         "sim"}
 
 #: what each wing may import besides itself
 ALLOWED: dict[str, set[str]] = {
@@ -24,16 +25,17 @@ ALLOWED: dict[str, set[str]] = {
     "drivers": {"kit", "sim"},
     "loop": {"kit", "drivers"},
     "log": {"kit"},
-    "settings": {"kit", "drivers", "sim", "loop", "log"},  # each wing's config
+    "settings": {"kit", "drivers", "sim", "loop", "log", "live"},  # each wing's config
     "stand": {"kit", "settings", "drivers", "sim"},
     "virtual": {"kit", "settings", "stand", "drivers", "sim", "loop", "log"},
     "emulate": {"kit", "drivers", "sim"},
     "analysis": {"kit", "settings", "stand", "virtual", "drivers", "sim", "loop", "log"},
     "procedures": {"kit", "settings", "stand", "virtual", "drivers", "sim", "loop", "log",
                    "analysis"},
-    "daemon": {"kit", "settings", "stand", "drivers", "sim", "loop", "log", "analysis"},
+    "live": {"kit", "log", "analysis"},
+    "daemon": {"kit", "settings", "stand", "drivers", "sim", "loop", "log", "analysis", "live"},
     "cli": {"kit", "settings", "stand", "virtual", "drivers", "sim", "loop", "log", "analysis",
-            "procedures", "daemon", "emulate"},
+            "procedures", "daemon", "emulate", "live"},
 }
 
 

@@ -103,10 +103,12 @@ def test_the_foxglove_layout_names_only_what_the_log_has() -> None:
     writer declares, the Log panel on the foxglove.Log topic."""
     from conftest import REPO
 
+    from leveler.live.foxglove import ASD_SCHEMA, ASD_TOPIC
     from leveler.log import writer
 
     layout = json.loads((REPO / "config" / "foxglove-layout.json").read_text())
-    fields = {"/leveler/sample": writer._SAMPLE_FIELDS, "/leveler/truth": writer._TRUTH_FIELDS}
+    fields = {"/leveler/sample": writer._SAMPLE_FIELDS, "/leveler/truth": writer._TRUTH_FIELDS,
+              ASD_TOPIC: json.loads(ASD_SCHEMA)["properties"]}
 
     def placed(node: object) -> list[str]:
         return [node] if isinstance(node, str) else [
@@ -119,6 +121,6 @@ def test_the_foxglove_layout_names_only_what_the_log_has() -> None:
         if panel.startswith("RosOut"):
             assert config["topicToRender"] == FOXGLOVE_LOG_TOPIC
             continue
-        for path in config["paths"]:
-            topic, _, field = path["value"].partition(".")
+        for path in [*config["paths"], *([config["xAxisPath"]] if "xAxisPath" in config else [])]:
+            topic, _, field = path["value"].removesuffix("[:]").partition(".")
             assert field in fields[topic], f"{panel}: {path['value']} is in no schema"

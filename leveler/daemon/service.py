@@ -121,7 +121,18 @@ class Daemon:
                                on_fault=self._log_fault)
         self.dt = 1.0 / self.cfg.loop.rate_hz
         pid = PID(self.cfg.controller.pid_config(), initial_output_v=self.stand.actuator.safe_v)
-        self.loop = Loop(self.stand.sensor, self.stand.actuator, pid, self.dt, [self.log],
+        self.live = None
+        if self.cfg.live.foxglove:  # after the log: a refused address leaves nothing open
+            from leveler.live.foxglove import FoxgloveStream
+
+            try:
+                self.live = FoxgloveStream(self.cfg.live, self.cfg.loop.rate_hz)
+            except ConfigError:
+                self.log.close()
+                self.stand.close()
+                raise
+        sinks = [self.log] if self.live is None else [self.log, self.live]
+        self.loop = Loop(self.stand.sensor, self.stand.actuator, pid, self.dt, sinks,
                          self.stand.truth, policy=self.cfg.loop)
         self._was_engaged = False  # the state a fault interrupted, for resuming after it
         self._reconnect_wait_s = 0.0  # 0: not in fault (or the fault has just come)
@@ -323,6 +334,7 @@ class Daemon:
                     "samples_written": self.log.samples_written, "dropped": self.log.dropped,
                     "healthy": self.log.healthy, "error": self.log.last_error,
                     "faults": self.log.faults, "last_fault": self.log.last_fault},
+            "live": {"foxglove": self.live.url if self.live is not None else None},
         }
 
     # ---- run on the loop thread ----------------------------------------------------
@@ -530,7 +542,9 @@ class Daemon:
         unstable = self._unstable_at_start() if cfg.loop.engage_on_start else None
         frozen = freeze_heap()  # last before the loop: what exists now lives as long
         print(f"leveler {__version__}: {cfg.sensor.backend} backend at {cfg.loop.rate_hz:g} Hz, "
-              f"logging to {self.log.path}, control socket {self.socket_path}", flush=True)
+              f"logging to {self.log.path}, control socket {self.socket_path}"
+              + (f", live view {self.live.url} (Foxglove: Open connection)"
+                 if self.live is not None else ""), flush=True)
         wd = self.notifier.watchdog_interval_s
         next_wd = time.monotonic()
         next_status = time.monotonic() + cfg.loop.status_interval_s
@@ -609,6 +623,8 @@ class Daemon:
                     for close in (self.notifier.close, self.stand.close, self.log.close,
                                   self.server.close):
                         closing.callback(close)
+                    if self.live is not None:
+                        closing.callback(self.live.close)
         print(f"stopped ({self.stop_reason or 'finished'}): {self.log.samples_written} samples "
               f"in {', '.join(str(p) for p in self.log.files)}", file=sys.stderr, flush=True)
         return 0

@@ -161,6 +161,16 @@ _WARNING_KINDS = frozenset({"bad_reading", "reconnect", "clock", "stability", "l
 _ERROR_KINDS = frozenset({"fault", "driver_error"})
 
 
+def encode(record: Sample | Truth | Environment | ThrustStand) -> bytes:
+    """A record's JSON as the log holds it (NaN and infinities as null)."""
+    return orjson.dumps(record, option=_RECORD_OPT)
+
+
+def encode_event(event: Event) -> bytes:
+    """An event's JSON as the log holds it (numpy values and anything else made plain)."""
+    return orjson.dumps(event, default=str, option=_EVENT_OPT)
+
+
 def foxglove_log(event: Event, log_time_ns: int) -> dict[str, Any]:
     """`event` as a foxglove.Log message: its kind and reason as the text, a fault (or a
     state change into one) as ERROR, trouble the loop rides out as WARNING, else INFO."""
@@ -186,6 +196,18 @@ def _schema(title: str, props: dict[str, tuple[str, str]]) -> bytes:
         },
         indent=1,
     ).encode()
+
+
+#: every topic's (schema name, JSON Schema): the log's channels, and the live stream's
+#: (leveler.live), which publishes the same topics in the same form
+SCHEMAS: dict[str, tuple[str, bytes]] = {
+    topic: (name, _schema(name, props)) for topic, name, props in (
+        (SAMPLE_TOPIC, "leveler.Sample", _SAMPLE_FIELDS),
+        (TRUTH_TOPIC, "leveler.Truth", _TRUTH_FIELDS),
+        (ENVIRONMENT_TOPIC, "leveler.Environment", _ENVIRONMENT_FIELDS),
+        (THRUST_STAND_TOPIC, "leveler.ThrustStand", _THRUST_STAND_FIELDS),
+        (EVENT_TOPIC, "leveler.Event", _EVENT_FIELDS))
+} | {FOXGLOVE_LOG_TOPIC: ("foxglove.Log", _FOXGLOVE_LOG_SCHEMA)}
 
 
 def _library() -> str:
@@ -426,21 +448,12 @@ class LogWriter:
             self._file = open(new, "wb")  # owned by the writer thread from here on
             hold(self._file)
             self._mcap = _McapFile(self._file, _library(), compression, chunk_size)
-            self._sample_ch = self._channel(SAMPLE_TOPIC, "leveler.Sample", _SAMPLE_FIELDS)
-            self._truth_ch = (
-                self._channel(TRUTH_TOPIC, "leveler.Truth", _TRUTH_FIELDS) if truth else None
-            )
-            self._env_ch = (
-                self._channel(ENVIRONMENT_TOPIC, "leveler.Environment", _ENVIRONMENT_FIELDS)
-                if environment else None
-            )
-            self._stand_ch = (
-                self._channel(THRUST_STAND_TOPIC, "leveler.ThrustStand", _THRUST_STAND_FIELDS)
-                if thrust_stand else None
-            )
-            self._event_ch = self._channel(EVENT_TOPIC, "leveler.Event", _EVENT_FIELDS)
-            self._log_ch = self._mcap.channel(FOXGLOVE_LOG_TOPIC, "foxglove.Log",
-                                              _FOXGLOVE_LOG_SCHEMA)
+            self._sample_ch = self._channel(SAMPLE_TOPIC)
+            self._truth_ch = self._channel(TRUTH_TOPIC) if truth else None
+            self._env_ch = self._channel(ENVIRONMENT_TOPIC) if environment else None
+            self._stand_ch = self._channel(THRUST_STAND_TOPIC) if thrust_stand else None
+            self._event_ch = self._channel(EVENT_TOPIC)
+            self._log_ch = self._channel(FOXGLOVE_LOG_TOPIC)
             self._mcap.metadata(METADATA_NAME, meta)
             self._file.flush()  # header, topics and metadata reach the OS even if we die now
             os.replace(new, self._path)
@@ -475,8 +488,8 @@ class LogWriter:
         )
         self._thread.start()
 
-    def _channel(self, topic: str, name: str, props: dict[str, tuple[str, str]]) -> int:
-        return self._mcap.channel(topic, name, _schema(name, props))
+    def _channel(self, topic: str) -> int:
+        return self._mcap.channel(topic, *SCHEMAS[topic])
 
     # -- producer side: the loop thread ------------------------------------------------
 
@@ -758,8 +771,7 @@ class LogWriter:
     def _put_event(self, event: Event, log_time: int) -> None:
         """An event on /leveler/event and, for Foxglove's Log panel, on /leveler/log."""
         seq = self._event_seq
-        self._mcap.add(self._event_ch, log_time,
-                       orjson.dumps(event, default=str, option=_EVENT_OPT), seq)
+        self._mcap.add(self._event_ch, log_time, encode_event(event), seq)
         self._mcap.add(self._log_ch, log_time, orjson.dumps(foxglove_log(event, log_time)), seq)
         self._event_seq += 1
 
