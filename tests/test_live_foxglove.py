@@ -164,3 +164,60 @@ def test_a_bad_address_is_a_config_error_naming_the_key(tmp_path: Path, value: s
     assert proc.returncode == 2
     assert "live: foxglove" in proc.stderr and says in proc.stderr and str(cfg) in proc.stderr
     assert not (tmp_path / "logs").exists()  # refused before a log was made
+
+
+def test_malformed_and_hostile_input_is_rejected_and_reaches_nothing(start_daemon: Any
+                                                                     ) -> None:
+    """Garbage frames, unknown ops, a client trying to publish on the loop's topics, set
+    parameters or call services, and raw bytes that are no WebSocket at all: each client is
+    refused or ignored, the loop runs on unchanged, and a good client still gets data."""
+    import socket
+
+    d = live_daemon(start_daemon)
+    address = url(d)
+    before = json.loads(d.cli("status", "--json").stdout)
+    hostile: list[str | bytes] = [
+        b"\x00\xff" * 100, "not json", json.dumps({"op": "nonsense"}), json.dumps([1, 2]),
+        json.dumps({"op": "subscribe", "subscriptions": [{"id": "x", "channelId": -1}]}),
+        json.dumps({"op": "advertise", "channels": [{"id": 1, "topic": "/leveler/sample",
+                                                     "encoding": "json",
+                                                     "schemaName": "leveler.Sample"}]}),
+        b"\x01\x01\x00\x00\x00" + json.dumps({"command_v": 150.0}).encode(),
+        json.dumps({"op": "setParameters", "parameters": [{"name": "ki_v_per_m_s",
+                                                           "value": 1e12}]}),
+        json.dumps({"op": "callService", "serviceId": 1, "callId": 1, "encoding": "json",
+                    "payload": "{}"}),
+    ]
+
+    async def attack() -> None:
+        for frame in hostile:
+            try:
+                async with websockets.connect(address, subprotocols=["foxglove.sdk.v1"]) as ws:
+                    await advertised(ws)
+                    await ws.send(frame)
+                    await asyncio.wait_for(ws.recv(), 1.0)  # an error status, or nothing
+            except (TimeoutError, websockets.ConnectionClosed):
+                pass
+
+    asyncio.run(attack())
+    host, port = address.removeprefix("ws://").split(":")
+    with socket.create_connection((host, int(port)), timeout=5) as raw:  # no handshake at all
+        raw.sendall(b"\x16\x03\x01\x02\x00" + bytes(range(256)) * 4)
+        raw.settimeout(2)
+        try:
+            raw.recv(1024)
+        except OSError:
+            pass
+    _, got = asyncio.run(collect(address, 2.0))
+    assert got["/leveler/sample"], "a good client gets nothing after the attack"
+    after = json.loads(d.cli("status", "--json").stdout)
+    assert after["state"] == "engaged" and after["controller"] == before["controller"]
+    assert after["loop"]["cycles"] > before["loop"]["cycles"] and not after["loop"]["stalled"]
+    d.stop()
+    (log,) = d.logs.glob("*.mcap")
+    from leveler.log.reader import read_log
+
+    events = read_log(log).events
+    assert not {e["kind"] for e in events} & {"tune", "procedure", "reload"}  # nothing driven
+    states = [e["detail"]["new"] for e in events if e["kind"] == "state"]
+    assert states == ["engaged", "idle"], states  # closed at start, opened at stop: no other
