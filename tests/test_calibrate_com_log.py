@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from figure_capture import saved_figures
 
 from leveler.cli.main import main
 from leveler.procedures.drive_lines import drive_lines
@@ -103,6 +104,37 @@ def test_hanging_centre_of_mass_from_its_zero(tmp_path: Path, waveform: str,
     text = capsys.readouterr().out
     assert "centre of mass: L = -20" in text and "um below the pivot" in text
     assert "zero of the response" in text and "[nm/V]" in text
+
+
+def test_bode_plot_draws_each_phase_on_the_fits_branch(tmp_path: Path,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """Below a hanging pendulum's zero the phase is near 180 deg: a line 8 deg past it is
+    at 188 deg on the fitted curve's branch, not at -172 a turn away from it; the
+    resonance is named like the zero, and every axis has its unit."""
+    from leveler.cli.calibrate_com_log import plot
+    from leveler.procedures.drive_lines import DriveLine
+    from leveler.procedures.pendulum_fit import PendulumFit, response
+
+    a, f0, q, f_zero = 2.5e-9, 5.1e-3, 19.0, 2.7e-3
+    g = -(math.tau * f_zero) ** 2
+    freqs = np.array([0.8, 1.0, 1.3, 1.8, 3.5, 4.9, 6.3, 7.8, 10.7]) * 1e-3
+    h = response(math.tau * freqs, a, g, math.tau * f0, q)
+    off = np.exp(1j * np.radians(np.where(np.arange(len(freqs)) % 2, 8.0, -8.0)))
+    lines = [DriveLine(float(f), 0.0, 1.0, 6.0 + 0j, complex(6.0 * x * o), 1e-11)
+             for f, x, o in zip(freqs, h, off, strict=True)]
+    fit = PendulumFit(lines, a, 0.0, a, 0.0, g, 0.0, f0, 0.0, 0.0, 0.0, q, 0.0, -3e-7, 0.0,
+                      4.3, 0.048, 1.0, len(freqs) - 4, list(h))
+    figures = saved_figures(monkeypatch)
+    plot(fit, str(tmp_path / "bode.png"), "rec.mcap: response to the drive lines")
+    [fig] = figures
+    mag, ph = fig.axes
+    points, fitted = ph.get_lines()[:2]
+    f, phase = (np.asarray(v, dtype=float) for v in points.get_data())
+    model = np.interp(np.log(f), np.log(fitted.get_xdata()), fitted.get_ydata())
+    assert np.abs(phase - model).max() == pytest.approx(8.0, abs=1.0)
+    assert [t.get_text() for t in mag.texts] == ["zero 2.7 mHz", "resonance 5.1 mHz"]
+    assert (mag.get_ylabel(), ph.get_ylabel(), ph.get_xlabel()) == (
+        "|reading / command| [nm/V]", "phase [deg]", "Frequency [Hz]")
 
 
 def test_inverted_pendulum_has_no_zero_and_its_distance_from_the_levels(

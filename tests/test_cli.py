@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from figure_capture import legend_texts, saved_figures
 
 from leveler.cli.main import build_parser, main
 from leveler.log.reader import read_log
@@ -84,6 +85,26 @@ def test_asd_compares_two_logs_and_plots(logs: tuple[Path, Path], tmp_path: Path
     ratio = float(row.split()[-1].rstrip("x"))
     assert ratio < 0.5  # closed loop well below open loop at 1 mHz
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_asd_legend_tells_a_log_from_itself(logs: tuple[Path, Path], tmp_path: Path,
+                                            monkeypatch: pytest.MonkeyPatch,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """The same file twice (or two alike names) still gives two legend entries one can tell
+    apart, file names not paths, and the axes say what is drawn in which unit."""
+    from leveler.cli.asd import _short_labels
+
+    closed = logs[0]
+    figures = saved_figures(monkeypatch)
+    assert main(["asd", str(closed), "--compare", str(closed), "--plot",
+                 str(tmp_path / "asd.png")]) == 0
+    [fig] = figures
+    assert legend_texts(fig) == ["closed.mcap", "closed.mcap (compare)"]
+    [ax] = fig.axes
+    assert ax.get_xlabel() == "Frequency [Hz]" and ax.get_ylabel() == "ASD of sensor_m [m/√Hz]"
+    assert "closed.mcap (compare)" in capsys.readouterr().out  # the table's column too
+    assert _short_labels(["a/x/run.mcap", "b/y/run.mcap"]) == ["x/run.mcap", "y/run.mcap"]
+    assert _short_labels(["run.mcap", "./run.mcap"]) == ["run.mcap", "run.mcap (compare)"]
 
 
 def test_asd_units_come_from_each_fields_schema(logs: tuple[Path, Path]) -> None:

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from figure_capture import saved_figures
 
 from leveler.log.reader import read_log
 from leveler.loop.modulation import SquareWave
@@ -40,6 +41,24 @@ def test_response_reads_the_step_through_drift_and_noise() -> None:
     assert r.steps == 6 and r.scatter < 5e-9
     with pytest.raises(ValueError, match="no samples in half period"):
         response(w, t[t < 50], y[t < 50])
+
+
+def test_plot_says_what_wave_on_what_stand(tmp_path: Path,
+                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    from leveler.cli.modulate import _plot
+
+    w = SquareWave(75.0, 5.0, 120.0, 2, start_t_s=10.0)
+    t = np.arange(10.0, 250.0, 0.1)
+    v = np.array([w.command_v(x) or 75.0 for x in t])
+    figures = saved_figures(monkeypatch)
+    _plot(str(tmp_path / "m.png"), w, t, 0.09e-6 * (v - 75.0), v)
+    [fig] = figures
+    top, bottom = fig.axes
+    assert top.get_title() == ("Tilt modulation on the simulated stand: 2 × 120 s square "
+                               "wave, piezo 75 V ± 5 V")
+    assert top.get_ylabel() == "inverted pendulum reading [µm]"
+    assert bottom.get_ylabel() == "piezo voltage [V]"
+    assert bottom.get_xlabel() == "time since the wave started [s]"
 
 
 def _cli(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:

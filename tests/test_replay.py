@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from figure_capture import legend_texts, saved_figures
 
 from leveler.analysis.predict import Predictor, load_measured
 from leveler.analysis.replay import replay, what_if
@@ -84,7 +85,9 @@ def test_what_if_gains_predict_a_real_rerun(night: Path, tmp_path: Path) -> None
 
 
 def test_cli_json_out_and_plot(night: Path, tmp_path: Path,
-                               capsys: pytest.CaptureFixture[str]) -> None:
+                               capsys: pytest.CaptureFixture[str],
+                               monkeypatch: pytest.MonkeyPatch) -> None:
+    figures = saved_figures(monkeypatch)
     out, png = tmp_path / "replay.mcap", tmp_path / "replay.png"
     assert main(["replay", str(night), "--json", "--out", str(out), "--plot", str(png),
                  "--gains", "0,1.4e6,0"]) == 0
@@ -92,6 +95,24 @@ def test_cli_json_out_and_plot(night: Path, tmp_path: Path,
     assert r["what_if"]["gains"]["ki_v_per_m_s"] == 1.4e6
     assert len(r["what_if"]["predicted_asd_m_rthz"]) == 3
     assert png.stat().st_size > 10_000
+    # The figure names the log and the model, every axis its unit, the residual what it
+    # is, and the dotted lines the report's band edges they are.
+    [fig] = figures
+    assert fig.get_suptitle() == "replay of night.mcap against the log's config"
+    top, bottom = fig.axes
+    assert [(ax.get_xlabel(), ax.get_ylabel()) for ax in (top, bottom)] == [
+        ("time from the first sample [h]", "sensor reading [nm]"),
+        ("frequency [Hz]", "ASD [m/√Hz]")]
+    assert "residual = measured − model" in legend_texts(fig)
+    # 4 h reach down to 0.1 mHz only with a few averages: its edge is named where it is
+    # inside the spectra, and no edge beyond them stretches the axis
+    f = bottom.get_lines()[0].get_xdata()
+    edges = [(1e-4, "0.1 mHz"), (1e-3, "1 mHz"), (1e-2, "10 mHz"), (0.1, "0.1 Hz"),
+             (1.0, "1 Hz")]
+    assert [t.get_text() for t in bottom.texts] == [
+        name for edge, name in edges if f[0] <= edge <= f[-1]]
+    assert len(bottom.texts) >= 4
+
     from mcap.reader import make_reader
 
     with out.open("rb") as fh:
@@ -102,6 +123,23 @@ def test_cli_json_out_and_plot(night: Path, tmp_path: Path,
     assert main(["replay", str(night)]) == 0
     text = capsys.readouterr().out
     assert "residual RMS" in text and "1-10 mHz" in text
+
+
+def test_plot_counts_hours_from_the_first_sample(night: Path, tmp_path: Path,
+                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """An imported log's clock is absolute (a logger's Unix time): the time axis counts from
+    the first sample, as the report does, not from 1970."""
+    from dataclasses import replace as with_
+
+    from leveler.analysis.replay import plot_replay
+
+    meas = load_measured(night)
+    meas = with_(meas, sig=with_(meas.sig, t_s=meas.t_s + 1.7e9))
+    _, pred, span = replay(meas)
+    figures = saved_figures(monkeypatch)
+    plot_replay(tmp_path / "r.png", meas, pred, span, "replay")
+    hours = figures[0].axes[0].get_lines()[0].get_xdata()
+    assert 0 <= hours[0] < 1 and hours[-1] == pytest.approx(4.0, abs=0.05)
 
 
 def test_imported_csv_replays_like_the_log_it_came_from(night: Path, tmp_path: Path,

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from figure_capture import saved_figures
 
 from leveler.cli.main import main
 from leveler.procedures import stiffness as st
@@ -151,6 +152,29 @@ def test_cli_json_and_plots(tmp_path: Path) -> None:
     for name in ("transfer_1uN.png", "transfer_0.1uN.png", "stiffness.png", "compliance.png",
                  "regimes.png"):
         assert (tmp_path / name).stat().st_size > 10_000
+
+
+def test_transfer_legends_name_each_k0_and_tilt_once(tmp_path: Path,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """Colour is K0 and line style the tilt: a legend for each, rather than ten entries each
+    repeating "K0 = 0.2 N m/rad"; a tilt whose H(0) is negative says so once."""
+    from matplotlib.legend import Legend
+
+    figures = saved_figures(monkeypatch)
+    assert main(["analyze", "stiffness", "--tilt-step-rad", "10e-6", "--json", "--plot-dir",
+                 str(tmp_path)]) == 0
+    for fig, negative in zip(figures[:2], ([], ["-20 urad", "-10 urad"]), strict=True):
+        [ax] = fig.axes
+        [colours] = [a for a in ax.artists if isinstance(a, Legend)]  # added beside the other
+        tilts = ax.get_legend()
+        assert [t.get_text() for t in colours.get_texts()] == ["K0 = 0.2 N m/rad",
+                                                               "K0 = 0.02 N m/rad"]
+        assert tilts.get_title().get_text() == "base tilt"
+        texts = [t.get_text() for t in tilts.get_texts()]
+        assert [t.split(" (")[0] for t in texts] == ["-20 urad", "-10 urad", "+0 urad",
+                                                    "+10 urad", "+20 urad"]
+        assert [t.split(" (")[0] for t in texts if "(H(0) < 0)" in t] == negative
+        assert ax.get_ylabel().endswith("[m/N]") and ax.get_xlabel() == "Frequency [Hz]"
 
 
 def test_cli_rejects_a_bad_sweep(capsys: pytest.CaptureFixture[str]) -> None:

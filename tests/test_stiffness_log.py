@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from figure_capture import saved_figures
 
 from leveler.cli.main import main
 from leveler.log.reader import read_log
@@ -140,7 +141,9 @@ def test_a_balanced_pendulum_shows_no_coupling(tmp_path: Path,
     assert shown and float(shown[1]) < 3 and "tilt budget" not in text
 
 
-def test_report_and_plot(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_report_and_plot(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                         monkeypatch: pytest.MonkeyPatch) -> None:
+    figures = saved_figures(monkeypatch)
     log = imported(tmp_path, capsys, stand_run(TorsionParams(), seed=5))
     assert main(["analyze", "stiffness", str(log), "--arm-m", "0.25", "--arm-sigma-m",
                  "0.00125", "--plot-dir", str(tmp_path / "plots")]) == 0
@@ -154,6 +157,17 @@ def test_report_and_plot(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
         assert needed in text, needed
     png = tmp_path / "plots" / "stiffness_log.png"
     assert png.stat().st_size > 20_000 and png.read_bytes()[:4] == b"\x89PNG"
+    # The figure names its log; the time axis is labelled once, under the channels, and
+    # the displacement above shares it without numbers of its own that no label explains.
+    [fig] = figures
+    assert fig.get_suptitle().startswith(f"{log.name}: thrust stand fit, K0 = ")
+    assert " ± " in fig.get_suptitle()
+    top, mid, bottom, twin = fig.axes
+    assert not any(t.get_visible() and t.get_text() for t in top.get_xticklabels())
+    assert mid.get_xlabel() == "Time from the first sample [h]"
+    for ax in (top, mid, twin):
+        assert ax.get_ylabel().endswith("]"), ax.get_ylabel()
+    assert bottom.get_xlabel() == "Pitch tilt [urad]"
 
 
 @pytest.fixture(scope="module")

@@ -8,6 +8,7 @@ from pathlib import Path
 import control
 import numpy as np
 import pytest
+from figure_capture import legend_texts, saved_figures
 
 from leveler.analysis.suggest import (
     MIN_GAIN_MARGIN_DB,
@@ -159,7 +160,23 @@ def test_report_config_lines_are_the_gains(default_loop: Loop) -> None:
     assert "current" in text and "10 mHz" in text
 
 
-def test_plot_writes_a_png(tmp_path: Path, default_loop: Loop) -> None:
+def test_plot_writes_a_png(tmp_path: Path, default_loop: Loop,
+                           monkeypatch: pytest.MonkeyPatch) -> None:
+    figures = saved_figures(monkeypatch)
     params, current = default_loop
     out = plot(params, RATE_HZ, current, tmp_path / "loop.png")
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # What it is in the title, a unit on every axis (L is V/V), the gains in 7×10⁵ form,
+    # the suppression frequencies named, the crossover a point that crosses no name.
+    [fig] = figures
+    mag, phase, nyq = fig.axes
+    assert fig.get_suptitle().startswith("Loop gain L = controller [V/m] × plant [m/V]")
+    for ax in (mag, phase, nyq):
+        assert ax.get_ylabel().endswith("]"), ax.get_ylabel()
+    assert phase.get_xlabel() == "Frequency [Hz]" and nyq.get_xlabel() == "Re L [V/V]"
+    assert "ki 7×10$^{5}$ V/(m s)" in mag.get_title()
+    assert [t.get_text() for t in mag.texts] == ["0.1 mHz", "1 mHz", "10 mHz"]
+    assert any(t.startswith("crossover ") for t in legend_texts(fig))
+    vertical = [ln for ln in mag.get_lines() if len(set(ln.get_xdata())) == 1
+                and len(ln.get_xdata()) == 2]
+    assert [ln.get_xdata()[0] for ln in vertical] == list(SUPPRESSION_HZ)

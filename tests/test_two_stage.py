@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from figure_capture import legend_texts, saved_figures
 from scipy.signal import dlsim
 
 from leveler.cli.main import main
@@ -66,6 +67,24 @@ def test_unstable_null_loop_is_reported() -> None:
     hot = replace(TwoStageParams(), pid=NullPID(kp_nm_per_rad=400.0, kd_nms_per_rad=50.0))
     with pytest.raises(ValueError, match="unstable"):
         closed_loop(hot, 0.1)
+
+
+def test_plot_legends_beside_the_panels(result: TwoStageResult, tmp_path: Path,
+                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The legends sit right of the panels: inside they hid the waves' crests. Every panel
+    says what it shows in which unit."""
+    from leveler.cli.analyze_two_stage import plot
+
+    figures = saved_figures(monkeypatch)
+    plot(result, str(tmp_path / "fig17.png"))
+    [fig] = figures
+    _, torque, thrust = fig.axes
+    for ax in (torque, thrust):
+        assert ax.get_legend().get_window_extent().x0 >= ax.get_window_extent().x1
+    assert [ax.get_ylabel() for ax in fig.axes] == [
+        "Base pitch [urad]", "TP1 balance torque [uN m]", "Thrust [uN]"]
+    assert thrust.get_xlabel() == "Time [s]"
+    assert legend_texts(fig)[0] == "-u, raw" and legend_texts(fig)[-1] == "true thrust"
 
 
 def test_cli_help_json_and_plot(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -82,13 +82,13 @@ def plot_sim(opened: Run, closed: Run, fs_hz: float, path: str | Path, *,
     sensor_ax.label_outer()
     c = controller
     fig.suptitle(f"leveler sim: {duration_s / 3600:g} h at {fs_hz:g} Hz, seed {seed}\n"
-                 f"PID kp {_sci(c.kp_v_per_m)} V/m, ki {_sci(c.ki_v_per_m_s)} V/(m s), "
-                 f"kd {_sci(c.kd_v_s_per_m)} V s/m, D filter {_sci(c.d_filter_tau_s)} s",
+                 f"PID kp {sci(c.kp_v_per_m)} V/m, ki {sci(c.ki_v_per_m_s)} V/(m s), "
+                 f"kd {sci(c.kd_v_s_per_m)} V s/m, D filter {sci(c.d_filter_tau_s)} s",
                  fontsize=11)
     return _save(fig, path)
 
 
-def _sci(x: float) -> str:
+def sci(x: float) -> str:
     """2.2e+07 as 2.2×10⁷ (mathtext): a title is read, not parsed."""
     mantissa, exponent = f"{x:.2e}".split("e")
     if x == 0 or -2 <= int(exponent) <= 2:

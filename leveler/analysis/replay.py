@@ -136,6 +136,8 @@ def write_replay_log(path: str | Path, meas: Measured, pred: Predictor) -> None:
 
 def plot_replay(path: str | Path, meas: Measured, pred: Predictor, span: slice,
                 title: str) -> None:
+    """(a) the sensor and the model's replay of it, block-averaged, (b) the ASDs of the
+    sensor and of the residual, with the report's band edges marked and named."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -147,21 +149,31 @@ def plot_replay(path: str | Path, meas: Measured, pred: Predictor, span: slice,
     top, bottom = fig.subplots(2, 1)
     y = meas.y_m[span]
     r = residual(meas, pred, span)
-    t, (ym, pm) = block_means(meas.t_s[span] / 3600, y, y - r)
+    # hours from the first sample, as the report counts: an imported log's clock is absolute
+    t, (ym, pm) = block_means((meas.t_s[span] - meas.t_s[0]) / 3600, y, y - r)
     top.plot(t, ym * 1e9, lw=0.8, label="measured")
     top.plot(t, pm * 1e9, lw=0.8, label="model")
-    top.set_xlabel("time [h]")
-    top.set_ylabel("sensor [nm]")
+    top.set_xlabel("time from the first sample [h]")
+    top.set_ylabel("sensor reading [nm]")
     top.legend()
-    top.set_title(f"{title} ({(t[1] - t[0]) * 3600:.0f} s averages)")
+    top.set_title(f"(a) sensor, measured and replayed ({(t[1] - t[0]) * 3600:.0f} s averages)",
+                  fontsize=10)
     fs = 1.0 / meas.dt_s
-    for label, x in (("measured", y - y.mean()), ("residual", r)):
+    for label, x in (("measured", y - y.mean()), ("residual = measured − model", r)):
         s = lpsd(x, fs)
         bottom.loglog(s.freq_hz, s.asd, lw=1, label=label)
-    for lo, _ in BANDS_HZ.values():
+    # the edges inside the spectra's band: one beyond it would stretch the axis, its name
+    # run off the edge
+    for lo in (lo for lo, _ in BANDS_HZ.values() if s.freq_hz[0] <= lo <= s.freq_hz[-1]):
         bottom.axvline(lo, color="0.5", ls=":", lw=0.8)
+        bottom.annotate(f"{lo * 1e3:g} mHz" if lo < 0.1 else f"{lo:g} Hz", (lo, 1),
+                        xycoords=("data", "axes fraction"), xytext=(2, -2),
+                        textcoords="offset points", va="top", fontsize=8, color="0.3")
     bottom.set_xlabel("frequency [Hz]")
     bottom.set_ylabel("ASD [m/√Hz]")
+    bottom.set_title("(b) spectra; dotted: the report's band edges", fontsize=10)
     bottom.grid(True, which="major", alpha=0.4)
-    bottom.legend()
+    # spectra fall with frequency: upper right, below the band names, is usually empty
+    bottom.legend(loc="upper right", bbox_to_anchor=(1, 0.93))
+    fig.suptitle(title)
     fig.savefig(path, dpi=110)

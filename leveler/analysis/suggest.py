@@ -313,6 +313,8 @@ def plot(params: PlantParams, rate_hz: float, s: Suggestion, path: str | Path) -
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
+    from leveler.analysis.plots import sci
+
     loop = (controller_tf(s.kp_v_per_m, s.ki_v_per_m_s, s.kd_v_s_per_m, s.d_filter_tau_s,
                           rate_hz) * plant_tf(params, rate_hz))
     f_hz = _grid_hz(params, rate_hz, 1e-5)
@@ -330,14 +332,18 @@ def plot(params: PlantParams, rate_hz: float, s: Suggestion, path: str | Path) -
                 label=f"|L| = {RESONANCE_LOOP_GAIN_MAX} (6 dB)")
     for f in SUPPRESSION_HZ:
         mag.axvline(f, color="0.3", linestyle=":", linewidth=0.8)
+        mag.annotate(_freq(f), (f, 1), xycoords=("data", "axes fraction"), xytext=(2, -2),
+                     textcoords="offset points", va="top", fontsize=8, color="0.3")
     if math.isfinite(s.crossover_hz):
-        mag.axvline(s.crossover_hz, color="C2", linewidth=0.8,
-                    label=f"crossover {_freq(s.crossover_hz)}")
-    mag.set_ylabel("|L|")
-    mag.legend(fontsize=8)
-    mag.set_title(f"kp = {s.kp_v_per_m:.3g} V/m, ki = {s.ki_v_per_m_s:.3g} V/(m s), "
-                  f"kd = {s.kd_v_s_per_m:.3g} V s/m: PM {s.phase_margin_deg:.1f} deg, "
-                  f"GM {s.gain_margin_db:.1f} dB", fontsize=10)
+        # a point on |L| = 1, not a vertical line: that would cross the frequency names
+        mag.plot([s.crossover_hz], [1.0], "o", color="C2", markersize=6,
+                 label=f"crossover {_freq(s.crossover_hz)}")
+    mag.set_ylabel("|L| [V/V]")
+    mag.legend(fontsize=8, loc="upper right")
+    mag.set_title(f"kp {sci(s.kp_v_per_m)} V/m, ki {sci(s.ki_v_per_m_s)} V/(m s), "
+                  f"kd {sci(s.kd_v_s_per_m)} V s/m: phase margin {s.phase_margin_deg:.1f} deg, "
+                  f"gain margin {s.gain_margin_db:.1f} dB", fontsize=10)
+    fig.suptitle("Loop gain L = controller [V/m] × plant [m/V]: Bode and Nyquist", fontsize=11)
     phase.semilogx(f_hz, np.degrees(np.unwrap(np.angle(resp))), linewidth=1.2)
     phase.axhline(-180.0, color="0.3", linewidth=0.8)
     phase.set_xlabel("Frequency [Hz]")
@@ -356,9 +362,9 @@ def plot(params: PlantParams, rate_hz: float, s: Suggestion, path: str | Path) -
     nyq.set_xlim(-2.0, 1.5)
     nyq.set_ylim(-2.0, 2.0)
     nyq.set_aspect("equal")
-    nyq.set_xlabel("Re L")
-    nyq.set_ylabel("Im L")
-    nyq.set_title("Nyquist", fontsize=10)
+    nyq.set_xlabel("Re L [V/V]")
+    nyq.set_ylabel("Im L [V/V]")
+    nyq.set_title("Nyquist, zoomed on -1", fontsize=10)
     nyq.grid(True, alpha=0.4)
     nyq.legend(fontsize=8, loc="lower right")
 

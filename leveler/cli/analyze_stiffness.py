@@ -197,12 +197,12 @@ def _sweep_table(sw: dict, note: str) -> list[str]:
     k0, thrust = sw["stiffness_nm_per_rad"], sw["thrust_n"]
     lines = [f"Tilt sweep: K0 = {k0:g} N m/rad, F = {thrust * 1e6:g} uN{note}",
              f"  {'tilt [urad]':>11} {'S [rad/(N m)]':>14} {'K [N m/rad]':>12} "
-             f"{'K incr.':>8} {'r (identified)':>15} {'r (model)':>10}  regime"]
+             f"{'K incr. [N m/rad]':>17} {'r (identified)':>15} {'r (model)':>10}  regime"]
     for pt in sw["points"]:
         k = pt["stiffness_nm_per_rad"]
         lines.append(f"  {pt['tilt_rad'] * 1e6:11.1f} {pt['compliance_rad_per_nm']:14.4g} "
                      f"{'inf' if k is None else f'{k:.4g}':>12} "
-                     f"{pt['incremental_stiffness_nm_per_rad']:8.4f} "
+                     f"{pt['incremental_stiffness_nm_per_rad']:17.4f} "
                      f"{pt['coupling_ratio']:15.3f} {pt['model_coupling_ratio']:10.3f}  "
                      f"{pt['regime']}")
     lin = sw["compliance_fit"]
@@ -239,6 +239,7 @@ def plot(r: dict, out_dir: Path) -> list[Path]:
     import numpy as np
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
 
     from leveler.procedures import stiffness as st
 
@@ -255,6 +256,8 @@ def plot(r: dict, out_dir: Path) -> list[Path]:
 
     for thrust in dict.fromkeys(sw["thrust_n"] for sw in sweeps):
         fig, ax = new()
+        # colour: K0, line: tilt; one legend for each, so no entry repeats the other's words
+        k0_handles, styles, negative = [], {}, {}
         for c, sw in enumerate(s for s in sweeps if s["thrust_n"] == thrust):
             pts = {pt["tilt_rad"]: pt for pt in sw["points"]}
             for t in _shown_tilts(list(pts)):
@@ -263,18 +266,29 @@ def plot(r: dict, out_dir: Path) -> list[Path]:
                                      incremental_gain_m_per_n=0.0, offset_m=0.0,
                                      natural_frequency_hz=pt["natural_frequency_hz"],
                                      quality_factor=pt["quality_factor"], rms_residual_m=0.0)
-                sign = " (H(0) < 0)" if pt["dc_gain_m_per_n"] < 0 else ""
-                ax.loglog(freq, fit.magnitude_m_per_n(freq), color=f"C{c}",
-                          linestyle="--" if t < 0 else "-",
-                          alpha=0.35 + 0.65 * (1 - abs(t) / max(abs(k) for k in pts)),
-                          label=f"K0 = {sw['stiffness_nm_per_rad']:g} N m/rad, "
-                          f"{t * 1e6:+.0f} urad{sign}")
+                style = {"linestyle": "--" if t < 0 else "-",
+                         "alpha": 0.35 + 0.65 * (1 - abs(t) / max(abs(k) for k in pts))}
+                ax.loglog(freq, fit.magnitude_m_per_n(freq), color=f"C{c}", **style)
+                key = round(t * 1e6)
+                styles.setdefault(key, style)
+                if pt["dc_gain_m_per_n"] < 0:
+                    negative.setdefault(key, []).append(f"{sw['stiffness_nm_per_rad']:g}")
+            k0_handles.append(Line2D([], [], color=f"C{c}",
+                                     label=f"K0 = {sw['stiffness_nm_per_rad']:g} N m/rad"))
+        n_k0 = len(k0_handles)
+        tilt_handles = [
+            Line2D([], [], color="0.2", **style, label=f"{key:+d} urad" + (
+                "" if key not in negative else " (H(0) < 0)" if len(negative[key]) == n_k0
+                else f" (H(0) < 0 at K0 = {', '.join(negative[key])})"))
+            for key, style in sorted(styles.items())]
         ax.set_xlabel("Frequency [Hz]")
         ax.set_ylabel("|H| thrust -> end displacement [m/N]")
         ax.set_title(f"Identified transfer function, F = {thrust * 1e6:g} uN square wave "
                      "(cf. paper Figs. 3, 4)")
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7, ncol=2)
+        ax.add_artist(ax.legend(handles=k0_handles, loc="upper right", fontsize=8))
+        ax.legend(handles=tilt_handles, loc="lower left", fontsize=8, title="base tilt",
+                  title_fontsize=8)
         path = out_dir / f"transfer_{thrust * 1e6:g}uN.png"
         fig.savefig(path, dpi=120)
         written.append(path)

@@ -144,7 +144,7 @@ def report(fit: StandFit, path: str) -> str:
     return "\n".join(lines)
 
 
-def plot(rec: Recording, fit: StandFit, out_dir: Path) -> Path:
+def plot(rec: Recording, fit: StandFit, out_dir: Path, name: str = "Recording") -> Path:
     """stiffness_log.png: the channels against time, and r per plateau on the fitted line."""
     import numpy as np
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -157,9 +157,9 @@ def plot(rec: Recording, fit: StandFit, out_dir: Path) -> Path:
     hours = (rec.t_s - rec.t_s[0]) / 3600
     top.plot(hours, rec.displacement_m * 1e9, lw=0.5, color="C0")
     top.set_ylabel("Displacement [nm]")
-    top.set_title(f"Recording: K0 = {fit.stiffness_nm_per_rad:.4g} +- "
-                  f"{fit.stiffness_sigma_nm_per_rad:.2g} N m/rad, f0 = "
-                  f"{fit.natural_frequency_hz:.3g} Hz, Q = {fit.quality_factor:.3g}")
+    fig.suptitle(f"{name}: thrust stand fit, K0 = {fit.stiffness_nm_per_rad:.4g} ± "
+                 f"{fit.stiffness_sigma_nm_per_rad:.2g} N m/rad, f0 = "
+                 f"{fit.natural_frequency_hz:.3g} Hz, Q = {fit.quality_factor:.3g}")
     mid.plot(hours, rec.thrust_n * 1e6, lw=0.6, color="C1")
     mid.set_ylabel("Thrust [uN]", color="C1")
     mid.set_xlabel("Time from the first sample [h]")
@@ -168,12 +168,13 @@ def plot(rec: Recording, fit: StandFit, out_dir: Path) -> Path:
         twin.plot(hours, rec.tilt_rad * 1e6, lw=0.8, color="C2")
         twin.set_ylabel("Tilt [urad]", color="C2")
     top.sharex(mid)
+    top.tick_params(labelbottom=False)  # the time axis is labelled once, under the channels
     if fit.tilt_sensitivity_nm_per_rad is not None and fit.tilt_range_rad is not None:
         lo, hi = fit.tilt_range_rad
         dense = np.linspace(min(lo, -abs(hi)), max(hi, abs(lo)), 200)
         line = np.array([fit.coupling_ratio(a) for a in dense])
         bottom.plot(dense * 1e6, line, "-", label=f"fit: M g l_cm = "
-                    f"{fit.tilt_sensitivity_nm_per_rad:.3g} +- "
+                    f"{fit.tilt_sensitivity_nm_per_rad:.3g} ± "
                     f"{fit.tilt_sensitivity_sigma_nm_per_rad:.2g} uN m/urad")
         if fit.plateaus:
             bottom.plot([p.tilt_rad * 1e6 for p in fit.plateaus],
@@ -231,7 +232,7 @@ def run(args: argparse.Namespace) -> int:
         print(note, file=sys.stderr)
     out = to_json(fit, args.log)
     if args.plot_dir:
-        out["plots"] = [str(plot(rec, fit, Path(args.plot_dir)))]
+        out["plots"] = [str(plot(rec, fit, Path(args.plot_dir), Path(args.log).name))]
     if args.json:
         print(json.dumps(out))
     else:

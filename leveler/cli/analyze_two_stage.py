@@ -116,19 +116,20 @@ def plot(r: TwoStageResult, path: str) -> None:
     ax1.plot(t, r.run.tilt_rad * 1e6, color="C0")
     ax1.set_ylabel("Base pitch [urad]")
     ax1.set_title("Two-stage torsion pendulum under base tilt (cf. paper Fig. 17)")
-    ax2.plot(t, -r.run.null_torque_nm * 1e6, color="0.7", linewidth=0.6, label="raw -u")
+    ax2.plot(t, -r.run.null_torque_nm * 1e6, color="0.7", linewidth=0.6, label="-u, raw")
     ax2.plot(t, r.balance_torque_nm * 1e6, color="C1",
-             label=f"low-passed b ({NULL_LOWPASS_HZ:g} Hz)")
+             label=f"b: -u low-passed\nat {NULL_LOWPASS_HZ:g} Hz")
     ax2.set_ylabel("TP1 balance torque [uN m]")
-    ax2.legend(loc="upper right", fontsize=8)
+    # legends right of the panels: inside, they would hide the waves' crests
+    ax2.legend(loc="upper left", bbox_to_anchor=(1.01, 1), fontsize=8)
     ax3.plot(t, r.single_stage_n * 1e6, color="C3", linewidth=1,
-             label=f"single stage (TP2 alone), corr {r.correlation_single:.3f}")
+             label=f"single stage\n(TP2 alone),\ncorr. {r.correlation_single:.3f}")
     ax3.plot(t, r.decoupled_n * 1e6, color="C2", linewidth=1,
-             label=f"two-stage decoupled, corr {r.correlation_decoupled:.3f}")
+             label=f"two-stage\ndecoupled,\ncorr. {r.correlation_decoupled:.3f}")
     ax3.plot(t, r.run.thrust_n * 1e6, color="k", linestyle="--", linewidth=1, label="true thrust")
     ax3.set_ylabel("Thrust [uN]")
     ax3.set_xlabel("Time [s]")
-    ax3.legend(loc="upper right", fontsize=8)
+    ax3.legend(loc="upper left", bbox_to_anchor=(1.01, 1), fontsize=8)
     for ax in (ax1, ax2, ax3):
         ax.grid(True, alpha=0.3)
     fig.savefig(path, dpi=120)

@@ -150,13 +150,19 @@ def _at(spec: Spectrum, f: float) -> float | None:
     return float(np.exp(np.interp(np.log(f), np.log(spec.freq_hz), np.log(spec.asd))))
 
 
-def _short_labels(paths: list[str]) -> dict[str, str]:
-    """A legend entry per log: its file name, with its directory when two names are alike."""
+def _short_labels(paths: list[str]) -> list[str]:
+    """A legend entry per log: its file name, with its directory when two names are alike
+    in different directories, and '(compare)' on the second when that still leaves them
+    alike (the same file twice)."""
     from pathlib import Path
 
     names = [Path(p).name for p in paths]
-    return {p: (n if names.count(n) == 1 else str(Path(Path(p).parent.name) / n))
-            for p, n in zip(paths, names, strict=True)}
+    dirs = [Path(p).resolve().parent for p in paths]
+    labels = [n if len({d for d, m in zip(dirs, names, strict=True) if m == n}) == 1
+              else str(Path(Path(p).parent.name) / n)
+              for p, n in zip(paths, names, strict=True)]
+    return [f"{label} (compare)" if labels[:i].count(label) else label
+            for i, label in enumerate(labels)]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -168,7 +174,7 @@ def run(args: argparse.Namespace) -> int:
     paths = [args.log, *([args.compare] if args.compare else [])]
     labels = _short_labels(paths)
     unit = ""
-    for path in paths:
+    for path, label in zip(paths, labels, strict=True):
         with reading(path, quiet=args.json) as b:
             log = read_log(path, fraction(b))
         unit = unit or log.units.get(args.channel, "")
@@ -184,7 +190,7 @@ def run(args: argparse.Namespace) -> int:
         if len(x) < 16:
             raise LogError(f"{path}: only {len(x)} samples of {args.channel!r} left after "
                            "cutting the non-finite ones at its ends; need at least 16")
-        curves.append((labels[path], lpsd(x, fs)))
+        curves.append((label, lpsd(x, fs)))
     per_rthz = f"{unit}/sqrt(Hz)" if unit else "per sqrt(Hz); the log's schema gives no unit"
     if args.json:
         print(json.dumps({path: {"freq_hz": s.freq_hz.tolist(), "asd": s.asd.tolist()}

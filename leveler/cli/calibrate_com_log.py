@@ -99,14 +99,20 @@ def plot(fit: PendulumFit, path: str, title: str) -> None:
     h = np.array([line.transfer_m_per_v for line in fit.lines])
     s = np.array([line.transfer_sigma_m_per_v for line in fit.lines])
     ff = np.geomspace(f.min() / 1.5, f.max() * 1.5, 600)
-    model = response(math.tau * ff, fit.scale_m_per_v, fit.g_per_s2,
-                     math.tau * fit.natural_frequency_hz, fit.q, fit.delay_s)
+    def model_at(f_hz: np.ndarray) -> np.ndarray:
+        return response(math.tau * f_hz, fit.scale_m_per_v, fit.g_per_s2,
+                        math.tau * fit.natural_frequency_hz, fit.q, fit.delay_s)
+
+    model = model_at(ff)
+    # each line's phase on the model's branch (-173 deg next to a model at +180 is +187):
+    # wrapped on its own it lands a full turn from a fit that goes through it
+    phase_h = np.angle(model_at(f)) + np.angle(h / model_at(f))
     fig = Figure(figsize=(8, 6.5), layout="constrained")
     FigureCanvasAgg(fig)
     mag, ph = fig.subplots(2, 1, sharex=True, height_ratios=(3, 2))
     mag.errorbar(f, np.abs(h) * 1e9, yerr=s * 1e9, fmt="o", ms=4, label="drive lines (1 sd)")
     mag.loglog(ff, np.abs(model) * 1e9, label=f"fit: L = {fit.com_length_m * 1e6:+.3g} um")
-    ph.errorbar(f, np.degrees(np.angle(h)), yerr=np.degrees(s / np.abs(h)), fmt="o", ms=4)
+    ph.errorbar(f, np.degrees(phase_h), yerr=np.degrees(s / np.abs(h)), fmt="o", ms=4)
     ph.semilogx(ff, np.degrees(np.angle(model)))
     for ax in (mag, ph):
         if fit.g_per_s2 < 0:
@@ -117,6 +123,9 @@ def plot(fit: PendulumFit, path: str, title: str) -> None:
         mag.annotate(f"zero {fit.zero_frequency_hz * 1e3:.3g} mHz", (fit.zero_frequency_hz, 1),
                      xycoords=("data", "axes fraction"), xytext=(3, -3),
                      textcoords="offset points", va="top", fontsize=8, color="0.3")
+    mag.annotate(f"resonance {fit.natural_frequency_hz * 1e3:.3g} mHz",
+                 (fit.natural_frequency_hz, 0), xycoords=("data", "axes fraction"),
+                 xytext=(3, 3), textcoords="offset points", va="bottom", fontsize=8, color="0.3")
     mag.set_ylabel("|reading / command| [nm/V]")
     mag.legend()
     mag.set_title(title)

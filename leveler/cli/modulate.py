@@ -262,16 +262,16 @@ def _plot(path: str, wave: SquareWave, t: np.ndarray, y: np.ndarray, v: np.ndarr
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(8, 5))
+    fig = Figure(figsize=(8, 5), layout="constrained")
     FigureCanvasAgg(fig)
     ax1, ax2 = fig.subplots(2, 1, sharex=True)
     ax1.plot(t - wave.start_t_s, y * 1e6, lw=0.8)
-    ax1.set_ylabel("inverted pendulum [um]")
-    ax1.set_title(f"square-wave tilt modulation, {wave.period_s:g} s, +-{wave.amplitude_v:g} V")
+    ax1.set_ylabel("inverted pendulum reading [µm]", fontsize=9)
+    ax1.set_title(f"Tilt modulation on the simulated stand: {wave.cycles} × {wave.period_s:g} s "
+                  f"square wave, piezo {wave.center_v:g} V ± {wave.amplitude_v:g} V")
     ax2.plot(t - wave.start_t_s, v, lw=0.8, color="C1")
-    ax2.set_ylabel("piezo [V]")
+    ax2.set_ylabel("piezo voltage [V]", fontsize=9)
     ax2.set_xlabel("time since the wave started [s]")
     for ax in (ax1, ax2):
         ax.grid(True, alpha=0.3)
-    fig.tight_layout()
     fig.savefig(path, dpi=120)

@@ -65,7 +65,8 @@ def run(args: argparse.Namespace) -> int:
         write_replay_log(args.out, meas, pred)
         result["out"] = args.out
     if args.plot:
-        plot_replay(args.plot, meas, pred, span, f"replay: {Path(args.log).name}")
+        plot_replay(args.plot, meas, pred, span,
+                    f"replay of {Path(args.log).name} against {meas.model_source}")
         result["plot"] = args.plot
     print(json.dumps(result) if args.json else report(result))
     return 0
