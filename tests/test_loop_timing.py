@@ -173,6 +173,8 @@ def test_rows_are_well_formed_and_judged(bench: ModuleType, with_cyclictest: boo
     m: dict[str, object] = {
         "logged": _run(bench, {20: 980, 100: 19, 2000: 1}),
         "unlogged": _run(bench, {20: 1000}), "bare": _run(bench, {15: 1000}),
+        "live": _run(bench, {20: 970, 100: 10, 2000: 20}, work_cpu_mean_ns=30_000.0,
+                     watched={"/leveler/sample": 50}),
         "plan": bench.plan(False, None), "priority": 50, "quick": False}
     if with_cyclictest:
         m["cyclictest"] = {"late_hist": _run(bench, {18: 999, 1500: 1})["late_hist"],
@@ -190,5 +192,9 @@ def test_rows_are_well_formed_and_judged(bench: ModuleType, with_cyclictest: boo
         assert late["ratio"] == 1.0 and late["met"] is True
     else:
         assert p99["ratio"] is None and p99["met"] is None and "not installed" in p99["note"]
+    live, cpu = by["lateness p99, live view on vs off"], by["CPU per cycle, live view on vs off"]
+    assert live["value"] == 2000.0 and live["ratio"] == 20.0 and live["met"] is False
+    assert cpu["ratio"] == 1.5 and cpu["met"] is False  # 30 us against 20 us
+    assert "/leveler/sample 50" in live["note"]
     m["quick"] = True
     assert all(r["met"] is None for r in bench.rows(m))  # a quick run judges nothing
