@@ -13,7 +13,7 @@ from leveler.drivers.modbus_config import ModbusActuatorConfig, ModbusSensorConf
 from leveler.drivers.nidaq_config import NidaqActuatorConfig, NidaqSensorConfig
 from leveler.drivers.serial_config import SerialPiezoConfig, SerialSensorConfig
 from leveler.drivers.simulated import FaultSpec
-from leveler.live.config import LiveConfig
+from leveler.live.config import EpicsConfig, LiveConfig
 from leveler.log.rotate import LogConfig
 from leveler.loop.cycle import LoopConfig
 from leveler.loop.pid import ControllerConfig
@@ -86,6 +86,7 @@ class Config:
     plant: PlantParams = field(default_factory=PlantParams)
     sim: SimConfig = field(default_factory=SimConfig)
     live: LiveConfig = field(default_factory=LiveConfig)
+    epics: EpicsConfig = field(default_factory=EpicsConfig)
 
     def __post_init__(self) -> None:
         if (self.sensor.backend == "sim") != (self.actuator.backend == "sim"):

@@ -144,7 +144,8 @@ def test_a_client_that_never_reads_costs_bounded_memory(start_daemon: Any) -> No
 def test_off_by_default(start_daemon: Any) -> None:
     d = start_daemon()
     d.wait_status_lines(1)
-    assert json.loads(d.cli("status", "--json").stdout)["live"] == {"foxglove": None}
+    assert json.loads(d.cli("status", "--json").stdout)["live"] == {"foxglove": None,
+                                                                    "epics": None}
     d.stop()
 
 

@@ -122,6 +122,7 @@ class Daemon:
         self.dt = 1.0 / self.cfg.loop.rate_hz
         pid = PID(self.cfg.controller.pid_config(), initial_output_v=self.stand.actuator.safe_v)
         self.live = None
+        self.epics: Any = None  # the EPICS server, started with the loop (run)
         if self.cfg.live.foxglove:  # after the log: a refused address leaves nothing open
             from leveler.live.foxglove import FoxgloveStream
 
@@ -180,8 +181,12 @@ class Daemon:
         _log.error("log: %s", message)
 
     def handle(self, req: dict[str, Any], peer: Peer) -> dict[str, Any]:
+        return self.request(req, f"uid {peer.uid}")
+
+    def request(self, req: dict[str, Any], who: str) -> dict[str, Any]:
+        """One control request, checked as the socket checks it, on behalf of `who` (the
+        socket's peer, an EPICS client): the events it makes name them."""
         verb = req["verb"]
-        who = f"uid {peer.uid}"
         if verb == "status":
             return {"ok": True, "status": self.status()}
         if verb == "start":
@@ -334,7 +339,10 @@ class Daemon:
                     "samples_written": self.log.samples_written, "dropped": self.log.dropped,
                     "healthy": self.log.healthy, "error": self.log.last_error,
                     "faults": self.log.faults, "last_fault": self.log.last_fault},
-            "live": {"foxglove": self.live.url if self.live is not None else None},
+            "live": {"foxglove": self.live.url if self.live is not None else None,
+                     "epics": None if self.epics is None else {
+                         "prefix": self.cfg.epics.prefix, "writable": self.cfg.epics.writable,
+                         "interfaces": list(self.cfg.epics.interfaces)}},
         }
 
     # ---- run on the loop thread ----------------------------------------------------
@@ -552,6 +560,11 @@ class Daemon:
         t = 0.0
         try:
             self.server.start()
+            if cfg.epics.serve:  # its puts are answered by this thread, between cycles
+                from leveler.live.epics import EpicsServer
+
+                lo, hi, _ = cfg.actuator_range_v()
+                self.epics = EpicsServer(cfg.epics, self.status, self.request, (lo, hi))
             t = clock.tick()
             loop.emit("start", "daemon started", t, config=str(self.config_path),
                       socket=str(self.socket_path), scheduler=self.scheduler,
@@ -623,8 +636,9 @@ class Daemon:
                     for close in (self.notifier.close, self.stand.close, self.log.close,
                                   self.server.close):
                         closing.callback(close)
-                    if self.live is not None:
-                        closing.callback(self.live.close)
+                    for server in (self.live, self.epics):
+                        if server is not None:
+                            closing.callback(server.close)
         print(f"stopped ({self.stop_reason or 'finished'}): {self.log.samples_written} samples "
               f"in {', '.join(str(p) for p in self.log.files)}", file=sys.stderr, flush=True)
         return 0

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import ipaddress
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from leveler.typed_config import positive
 
@@ -46,3 +46,28 @@ class LiveConfig:
         if self.asd_span_s < 10 * self.asd_interval_s:
             raise ValueError(f"asd_span_s: {self.asd_span_s:g} s should be at least ten "
                              f"asd_interval_s ({10 * self.asd_interval_s:g} s)")
+
+
+@dataclass(frozen=True, slots=True)
+class EpicsConfig:
+    """[epics]: Channel Access PVs of the running loop (the `epics` extra, caproto). Off
+    unless `serve`; on the loopback interface unless `interfaces` names others; read-only
+    unless `writable`, and then only setpoint, gains, engage and reset, each checked as
+    `leveler tune`/`start`/`stop`/`reset` check them and logged with the client's user@host."""
+
+    serve: bool = False
+    prefix: str = "LEV:"
+    interfaces: tuple[str, ...] = ("127.0.0.1",)
+    writable: bool = False
+    update_hz: float = positive(10.0)
+    piezo_near_rail_fraction: float = field(default=0.05, metadata={"gt": 0.0, "le": 0.5})
+
+    def __post_init__(self) -> None:
+        if not self.prefix or any(c.isspace() for c in self.prefix):
+            raise ValueError(f"prefix: {self.prefix!r} must be non-empty, without spaces")
+        for a in self.interfaces:
+            try:
+                ipaddress.ip_address(a)
+            except ValueError:
+                raise ValueError(f"interfaces: {a!r} is not an IP address (127.0.0.1, the "
+                                 "default; 0.0.0.0 for every interface)") from None

@@ -1,0 +1,177 @@
+"""EPICS Channel Access PVs of the running daemon (a real subprocess), read and written by a
+real CA client: pyepics, whose libca is EPICS base's own C client, in a process of its own
+(on loopback with EPICS_CA_AUTO_ADDR_LIST=NO and a port of the test's). Units, precision,
+alarm severities (near a rail, stale, fault), writes only when [epics] writable, each put
+checked as `leveler tune` checks it and logged with the client's user@host."""
+
+from __future__ import annotations
+
+import json
+import socket
+import subprocess
+import sys
+import time
+from typing import Any
+
+import pytest
+
+from leveler.log.reader import read_log
+
+pytest.importorskip("epics", reason="pyepics (the test extra) is not installed")
+
+CLIENT = """
+import json, sys, time
+import epics
+out = {}
+for op in json.loads(sys.argv[1]):
+    name = "LEV:" + op["pv"]
+    if "put" in op:
+        try:
+            out[op["pv"] + "=put"] = epics.caput(name, op["put"], wait=True, timeout=5)
+        except epics.ca.CASeverityException as exc:
+            out[op["pv"] + "=put"] = str(exc)
+        time.sleep(0.5)  # the readback follows at the server's update rate
+        continue
+    pv = epics.PV(name)
+    value = pv.get(timeout=5, as_string=op.get("string", False))
+    ctrl = pv.get_ctrlvars(timeout=5) or {}
+    out[op["pv"]] = {"value": value, "units": pv.units, "precision": pv.precision,
+                     "severity": pv.severity, "write": pv.write_access,
+                     "connected": pv.connected,
+                     "limits": [ctrl.get(k) for k in ("lower_alarm_limit",
+                                "lower_warning_limit", "upper_warning_limit",
+                                "upper_alarm_limit")]}
+print(json.dumps(out))
+"""
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def ca_env(port: int) -> dict[str, str]:
+    return {"EPICS_CA_SERVER_PORT": str(port), "EPICS_CA_REPEATER_PORT": str(port + 1),
+            "EPICS_CA_AUTO_ADDR_LIST": "NO", "EPICS_CA_ADDR_LIST": "127.0.0.1",
+            "EPICS_CAS_AUTO_BEACON_ADDR_LIST": "NO", "EPICS_CAS_BEACON_ADDR_LIST": "127.0.0.1"}
+
+
+def ca(port: int, *ops: dict[str, Any]) -> dict[str, Any]:
+    import os
+
+    proc = subprocess.run([sys.executable, "-c", CLIENT, json.dumps(ops)],
+                          env={**os.environ, **ca_env(port)}, capture_output=True, text=True,
+                          timeout=90)
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def epics_daemon(start_daemon: Any, *, writable: bool = False, sim: str = "",
+                 replace: dict[str, str] | None = None) -> tuple[Any, int]:
+    port = free_port()
+    table = f"\n[epics]\nserve = true\nwritable = {'true' if writable else 'false'}\n"
+    d = start_daemon(rate_hz=20.0, sim=sim, replace=replace, env=ca_env(port),
+                     edit=lambda text: text + table)
+    d.wait_status_lines(1)
+    time.sleep(1.5)  # the loop's period statistics are recomputed once a second
+    return d, port
+
+
+def test_read_only_pvs_carry_units_precision_and_no_alarm(start_daemon: Any) -> None:
+    d, port = epics_daemon(start_daemon)
+    got = ca(port, *({"pv": n} for n in ("READING", "TILT", "PIEZO", "P", "I", "D",
+                                          "PERIOD_P99", "OVERRUNS")),
+             {"pv": "STATE", "string": True}, {"pv": "KI"},
+             {"pv": "READING", "put": 1e-6}, {"pv": "STATE", "string": True})
+    status = json.loads(d.cli("status", "--json").stdout)
+    assert status["live"]["epics"] == {"prefix": "LEV:", "writable": False,
+                                       "interfaces": ["127.0.0.1"]}
+    for name, units in (("READING", "m"), ("TILT", "rad"), ("PIEZO", "V"), ("I", "V"),
+                        ("PERIOD_P99", "s")):
+        assert got[name]["units"] == units and got[name]["severity"] == 0, (name, got[name])
+        assert got[name]["write"] is False
+    assert got["READING"]["precision"] == 12
+    assert abs(got["READING"]["value"]) < 1e-6  # levelled: nanometres
+    assert 0 < got["PIEZO"]["value"] < 150
+    assert 0.04 < got["PERIOD_P99"]["value"] < 0.1  # 20 Hz
+    assert got["STATE"]["value"] == "engaged"
+    assert got["KI"]["connected"] is False  # no writable PVs unless [epics] writable
+    assert "Write access denied" in got["READING=put"]
+    d.stop()
+    events = read_log(next(d.logs.glob("*.mcap"))).events
+    assert not [e for e in events if e["kind"] == "tune"]  # the put on READING did nothing
+
+
+def test_writes_are_checked_as_tune_and_logged_with_the_client(start_daemon: Any) -> None:
+    d, port = epics_daemon(start_daemon, writable=True)
+    got = ca(port, {"pv": "KI"}, {"pv": "KI", "put": 2.1e7}, {"pv": "KI"},
+             {"pv": "KI", "put": -5.0}, {"pv": "KI"}, {"pv": "ENGAGE", "put": 0},
+             {"pv": "STATE", "string": True}, {"pv": "ENGAGE", "put": 1},
+             {"pv": "STATE", "string": True}, {"pv": "SETPOINT"})
+    assert got["KI"]["write"] is True and got["KI"]["units"] == "V/(m s)"
+    status = json.loads(d.cli("status", "--json").stdout)
+    assert status["controller"]["ki_v_per_m_s"] == 2.1e7  # the good put; the bad one refused
+    assert status["state"] == "engaged"
+    assert got["SETPOINT"]["units"] == "m"
+    err = d.stop()
+    assert "ki_v_per_m_s must be >= 0" in err  # the refusal, in the journal
+    assert "Traceback" not in err
+    events = read_log(next(d.logs.glob("*.mcap"))).events
+    tunes = [e for e in events if e["kind"] == "tune"]
+    assert len(tunes) == 1 and tunes[0]["reason"].startswith("tune by EPICS ")
+    assert "@" in tunes[0]["reason"]  # user@host of the client
+    moves = [e["reason"] for e in events if e["kind"] == "state"]
+    assert any(r.startswith("stop by EPICS ") for r in moves)
+    assert any(r.startswith("start by EPICS ") for r in moves)
+
+
+def test_a_piezo_near_its_rail_is_minor(start_daemon: Any) -> None:
+    d, port = epics_daemon(start_daemon, replace={
+        "engage_on_start = true": "engage_on_start = false",
+        "safe_v = 75.0": "safe_v = 148.0"})
+    got = ca(port, {"pv": "PIEZO"}, {"pv": "STATE", "string": True})
+    assert got["STATE"]["value"] == "idle"
+    assert got["PIEZO"]["value"] == pytest.approx(148.0)
+    assert got["PIEZO"]["severity"] == 1  # MINOR: within 5 % of 150 V
+    assert got["PIEZO"]["limits"] == [0.0, 7.5, 142.5, 150.0]  # LOLO, LOW, HIGH, HIHI [V]
+    d.stop()
+
+
+def test_stale_data_is_invalid_and_a_fault_is_major(start_daemon: Any) -> None:
+    d, port = epics_daemon(start_daemon, sim="hang_at_s = 2.0\nhang_for_s = 6.0")
+    time.sleep(1.5)  # the sensor hangs from t = 2 s: the loop stalls
+    got = ca(port, {"pv": "READING"}, {"pv": "STATE", "string": True})
+    assert got["READING"]["severity"] == 3, got  # INVALID
+    d.stop()
+    d, port = epics_daemon(start_daemon, sim="fail_at_s = 1.0", replace={
+        "engage_on_start = true": "engage_on_start = true\nreconnect_min_s = 1000.0"})
+    deadline = time.monotonic() + 20
+    while json.loads(d.cli("status", "--json").stdout)["state"] != "fault":
+        assert time.monotonic() < deadline, "no fault"
+        time.sleep(0.1)
+    got = ca(port, {"pv": "STATE", "string": True})
+    assert got["STATE"]["value"] == "fault" and got["STATE"]["severity"] == 2  # MAJOR
+    d.stop()
+
+
+def test_hostile_puts_are_refused_and_reach_nothing(start_daemon: Any) -> None:
+    """Out-of-range, unstable and non-finite values, a switch put 7: each refused with its
+    reason, the loop's gains and state as they were, no tune event in the log. (A string
+    to a numeric PV is refused by the client library before it is sent.)"""
+    d, port = epics_daemon(start_daemon, writable=True)
+    before = json.loads(d.cli("status", "--json").stdout)
+    got = ca(port, {"pv": "KP", "put": 1e30},
+             {"pv": "KD", "put": -1.0}, {"pv": "SETPOINT", "put": 1.0},
+             {"pv": "ENGAGE", "put": 7}, {"pv": "RESET", "put": -3},
+             {"pv": "KI", "put": float("nan")}, {"pv": "STATE", "string": True})
+    after = json.loads(d.cli("status", "--json").stdout)
+    assert after["controller"] == before["controller"]
+    assert after["state"] == "engaged" == got["STATE"]["value"]
+    err = d.stop()
+    for reason in ("kd_v_s_per_m must be >= 0", "ENGAGE takes 0 or 1", "RESET takes 0 or 1"):
+        assert reason in err, reason
+    assert "Traceback" not in err
+    events = read_log(next(d.logs.glob("*.mcap"))).events
+    assert not [e for e in events if e["kind"] in ("tune", "reload", "procedure")]
+    assert [e["detail"]["new"] for e in events if e["kind"] == "state"] == ["engaged", "idle"]
