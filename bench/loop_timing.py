@@ -19,7 +19,8 @@ Baselines, measured in the same benchmark, one after another (never concurrently
 - a bare loop on the same `RealtimeClock`, same process set-up and instrumentation, doing
   no work: the floor for a Python loop on this clock.
 - the same logged daemon with its live view on ([live] foxglove on loopback, issue 20) and a
-  real WebSocket client (another process) subscribed to every topic: what watching costs.
+  real WebSocket client (another process) subscribed to every topic, and its EPICS PVs
+  served ([epics] serve): what watching costs.
 In the full run each is measured in three rounds (cyclictest, daemon, daemon without log,
 daemon with the live view, bare loop; again), so a change in the load of a shared machine
 falls on all of them alike.
@@ -259,8 +260,9 @@ def _config(tmp: Path, live_port: int | None = None) -> Path:
         raise RuntimeError("config/sim.toml: no `rate_hz = ...` line to set to 1000")
     text = text.replace('dir = "logs"', f'dir = "{tmp / "logs"}"')
     text += f'\n[control]\nsocket_path = "{tmp / "control.sock"}"\n'
-    if live_port is not None:
-        text += f'\n[live]\nfoxglove = "127.0.0.1:{live_port}"\n'
+    if live_port is not None:  # both servers of issue 20 on, as a lab would run them
+        text += (f'\n[live]\nfoxglove = "127.0.0.1:{live_port}"\n'
+                 '\n[epics]\nserve = true\n')
     path = tmp / ("sim-1khz.toml" if live_port is None else "sim-1khz-live.toml")
     path.write_text(text)
     return path
@@ -563,7 +565,8 @@ def rows(m: dict[str, Any]) -> list[dict[str, Any]]:
     add("lateness p99, live view on vs off", vp99, "us", f"live off {lp99:g}", r, "<= 1.5x",
         r is not None and r <= 1.5,
         note=f"[live] foxglove on loopback at 50 Hz, a client in another process subscribed to "
-        f"every topic (messages it got: {watched}); {vn} cycles, {per_1e5(vlate, vn):.3g} late "
+        f"every topic (messages it got: {watched}), and [epics] serving its PVs at 2 Hz; "
+        f"{vn} cycles, {per_1e5(vlate, vn):.3g} late "
         f"per 1e5 ({vlate}), max {lv['late_max_ns'] / 1000:.0f} us")
     vw = lv["work_cpu_mean_ns"] / 1000
     w0 = lg["work_cpu_mean_ns"] / 1000

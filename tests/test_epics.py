@@ -70,7 +70,8 @@ def ca(port: int, *ops: dict[str, Any]) -> dict[str, Any]:
 def epics_daemon(start_daemon: Any, *, writable: bool = False, sim: str = "",
                  replace: dict[str, str] | None = None) -> tuple[Any, int]:
     port = free_port()
-    table = f"\n[epics]\nserve = true\nwritable = {'true' if writable else 'false'}\n"
+    table = (f"\n[epics]\nserve = true\nwritable = {'true' if writable else 'false'}\n"
+             "update_hz = 10.0\n")
     d = start_daemon(rate_hz=20.0, sim=sim, replace=replace, env=ca_env(port),
                      edit=lambda text: text + table)
     d.wait_status_lines(1)

@@ -59,7 +59,7 @@ class EpicsConfig:
     prefix: str = "LEV:"
     interfaces: tuple[str, ...] = ("127.0.0.1",)
     writable: bool = False
-    update_hz: float = positive(10.0)
+    update_hz: float = positive(2.0)
     piezo_near_rail_fraction: float = field(default=0.05, metadata={"gt": 0.0, "le": 0.5})
 
     def __post_init__(self) -> None:

@@ -13,10 +13,12 @@ import asyncio
 import contextvars
 import logging
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
 from leveler.live.config import EpicsConfig
+from leveler.rt import background_thread
 from leveler.typed_config import ConfigError
 
 _log = logging.getLogger(__name__)
@@ -120,6 +122,7 @@ class EpicsServer:
     # -- the server thread --------------------------------------------------------------
 
     def _serve(self) -> None:
+        background_thread()  # under the service: below the loop, as the log writer's threads
         try:
             asyncio.run(self._main())
         except BaseException as exc:  # reported to __init__ if it never became ready
@@ -164,6 +167,9 @@ class EpicsServer:
         async def put(pv: Any, value: Any, alarm: dict[str, Any] | None = None) -> None:
             # not verified: caproto's limit check would put its own (empty) alarm over ours
             await pv.write(value, verify_value=False, **(alarm or {}))
+            # hand the interpreter lock back between PVs: a loop thread waking now waits for
+            # one write, not for the whole update (measured: p99 lateness 2.6x at 1 kHz)
+            time.sleep(0)
 
         if s is not None:
             await put(g.reading, s.sensor_m, invalid if stale else ok)
