@@ -126,6 +126,8 @@ class EpicsServer:
         try:
             asyncio.run(self._main())
         except BaseException as exc:  # reported to __init__ if it never became ready
+            if self._ready.is_set():
+                _log.error("EPICS server stopped: %s: %s", type(exc).__name__, exc)
             self._error = exc
             self._ready.set()
 
@@ -146,7 +148,10 @@ class EpicsServer:
         self._ready.set()
         try:
             while not self._stop.is_set():
-                await self._update()
+                try:
+                    await self._update()
+                except Exception:  # one bad refresh must not freeze every PV for good
+                    _log.exception("EPICS: refreshing the PVs failed; trying again")
                 try:
                     await asyncio.wait_for(self._stop.wait(), 1.0 / self.cfg.update_hz)
                 except TimeoutError:
