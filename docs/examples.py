@@ -21,6 +21,7 @@ on every transcript, so a change that moves a number fails the suite until `make
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
 import re
 import subprocess
@@ -29,6 +30,7 @@ import tempfile
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
 FILES = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
@@ -38,31 +40,25 @@ _NUMBER = re.compile(r"[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:[eE][-+]?\d+)?")
 _WALL = re.compile(r"[-+]?\d+(?:\.\d+)?(?= s wall)")
 
 
-def _independent(name: str) -> object:
-    """A module of bench/independent (the generators leveler did not write)."""
+def _bench(module: str) -> Any:
+    """A module of bench/ (no package): the independent generators and the score scripts'
+    helpers the worked examples are made with."""
     sys.path.insert(0, str(REPO / "bench"))
     try:
-        import importlib
-
-        return importlib.import_module(f"independent.{name}")
+        return importlib.import_module(module)
     finally:
         sys.path.remove(str(REPO / "bench"))
 
 
 def _thrust_stand(cwd: Path) -> None:
     """The stand's file the docs show the head of."""
-    _independent("thrust_stand").write_recording(1, cwd, scenario="stepped")  # type: ignore[attr-defined]
+    _bench("independent.thrust_stand").write_recording(1, cwd, scenario="stepped")
 
 
 def _tiltmeter(cwd: Path) -> None:
     """The config a lab writes for seed 1's tiltmeter (the block makes the recording)."""
-    truth = _independent("tiltmeter").write_recording(1, cwd, "sine", drift_scale=0.1)  # type: ignore[attr-defined]
-    sys.path.insert(0, str(REPO / "bench"))
-    try:
-        from com_score import stand_config
-    finally:
-        sys.path.remove(str(REPO / "bench"))
-    (cwd / "stand.toml").write_text(stand_config(truth))
+    truth = _bench("independent.tiltmeter").write_recording(1, cwd, "sine", drift_scale=0.1)
+    (cwd / "stand.toml").write_text(_bench("com_score").stand_config(truth))
 
 
 SETUPS: dict[str, Callable[[Path], None]] = {"thrust-stand-1": _thrust_stand,
