@@ -7,13 +7,13 @@ checked as `leveler tune` checks it and logged with the client's user@host."""
 from __future__ import annotations
 
 import json
-import socket
 import subprocess
 import sys
 import time
 from typing import Any
 
 import pytest
+from ca_server import ca_env, epics_daemon
 
 from leveler.log.reader import read_log
 
@@ -33,8 +33,9 @@ for op in json.loads(sys.argv[1]):
         time.sleep(0.5)  # the readback follows at the server's update rate
         continue
     pv = epics.PV(name)
-    value = pv.get(timeout=5, as_string=op.get("string", False))
-    ctrl = pv.get_ctrlvars(timeout=5) or {}
+    wait = op.get("timeout", 5)  # 1 s for a PV that should not exist: absence is a timeout
+    value = pv.get(timeout=wait, as_string=op.get("string", False))
+    ctrl = pv.get_ctrlvars(timeout=wait) if pv.connected else {}
     out[op["pv"]] = {"value": value, "units": pv.units, "precision": pv.precision,
                      "severity": pv.severity, "write": pv.write_access,
                      "connected": pv.connected,
@@ -43,18 +44,6 @@ for op in json.loads(sys.argv[1]):
                                 "upper_alarm_limit")]}
 print(json.dumps(out))
 """
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def ca_env(port: int) -> dict[str, str]:
-    return {"EPICS_CA_SERVER_PORT": str(port), "EPICS_CA_REPEATER_PORT": str(port + 1),
-            "EPICS_CA_AUTO_ADDR_LIST": "NO", "EPICS_CA_ADDR_LIST": "127.0.0.1",
-            "EPICS_CAS_AUTO_BEACON_ADDR_LIST": "NO", "EPICS_CAS_BEACON_ADDR_LIST": "127.0.0.1"}
 
 
 def ca(port: int, *ops: dict[str, Any]) -> dict[str, Any]:
@@ -67,23 +56,11 @@ def ca(port: int, *ops: dict[str, Any]) -> dict[str, Any]:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def epics_daemon(start_daemon: Any, *, writable: bool = False, sim: str = "",
-                 replace: dict[str, str] | None = None) -> tuple[Any, int]:
-    port = free_port()
-    table = (f"\n[epics]\nserve = true\nwritable = {'true' if writable else 'false'}\n"
-             "update_hz = 10.0\n")
-    d = start_daemon(rate_hz=20.0, sim=sim, replace=replace, env=ca_env(port),
-                     edit=lambda text: text + table)
-    d.wait_status_lines(1)
-    time.sleep(1.5)  # the loop's period statistics are recomputed once a second
-    return d, port
-
-
 def test_read_only_pvs_carry_units_precision_and_no_alarm(start_daemon: Any) -> None:
     d, port = epics_daemon(start_daemon)
     got = ca(port, *({"pv": n} for n in ("READING", "TILT", "PIEZO", "P", "I", "D",
                                           "PERIOD_P99", "OVERRUNS")),
-             {"pv": "STATE", "string": True}, {"pv": "KI"},
+             {"pv": "STATE", "string": True}, {"pv": "KI", "timeout": 1},
              {"pv": "READING", "put": 1e-6}, {"pv": "STATE", "string": True})
     status = json.loads(d.cli("status", "--json").stdout)
     assert status["live"]["epics"] == {"prefix": "LEV:", "writable": False,
