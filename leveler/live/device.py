@@ -1,0 +1,69 @@
+"""leveler as an ophyd-async device over its EPICS PVs ([epics] serve), for Bluesky.
+
+A thrust-measurement scan that reads `Leveler` beside its detectors records the reading, the
+tilt, the piezo and the loop state in the same run (units from the PVs' EGU), and a plan can
+move the setpoint. Imported in the lab's Bluesky session, not by the daemon: it needs the
+`bluesky` extra (ophyd-async with its Channel Access backend) and nothing else of leveler.
+"""
+
+from __future__ import annotations
+
+from bluesky.protocols import Movable
+from ophyd_async.core import AsyncStatus, StandardReadable, StrictEnum, wait_for_value
+from ophyd_async.core import StandardReadableFormat as Format
+from ophyd_async.epics.core import epics_signal_r, epics_signal_rw
+
+
+class LoopState(StrictEnum):
+    """LEV:STATE's choices, in the server's order (leveler.live.epics.STATES)."""
+
+    IDLE = "idle"
+    ENGAGED = "engaged"
+    FAULT = "fault"
+    MODULATING = "modulating"
+
+
+class LevelerReadout(StandardReadable):
+    """What a scan records at each point: reading (m) and tilt (rad), hinted so the live
+    table and plots show them, the piezo voltage (V) and the loop state. Works against a
+    read-only server ([epics] writable = false)."""
+
+    def __init__(self, prefix: str = "LEV:", name: str = "") -> None:
+        with self.add_children_as_readables(Format.HINTED_SIGNAL):
+            self.reading = epics_signal_r(float, prefix + "READING")
+            self.tilt = epics_signal_r(float, prefix + "TILT")
+        with self.add_children_as_readables():
+            self.piezo = epics_signal_r(float, prefix + "PIEZO")
+            self.state = epics_signal_r(LoopState, prefix + "STATE")
+        super().__init__(name=name)
+
+
+class Leveler(LevelerReadout, Movable[float]):
+    """The readout, and the setpoint (m) as a movable: needs [epics] writable = true.
+
+    `set(x)` is done when the daemon has accepted the setpoint (a put it refuses, e.g. a
+    setpoint in mm, fails the status; the daemon's journal says why). With `settle_m`, it is done
+    only once the reading is within `settle_m` of x, so a scan's next reading sees the
+    levelled stand; `settle_timeout_s` bounds that wait.
+    """
+
+    def __init__(self, prefix: str = "LEV:", name: str = "", settle_m: float | None = None,
+                 settle_timeout_s: float = 60.0) -> None:
+        with self.add_children_as_readables():  # read at each point, beside the reading
+            self.setpoint = epics_signal_rw(float, prefix + "SETPOINT")
+        self._settle_m, self._settle_timeout_s = settle_m, settle_timeout_s
+        super().__init__(prefix, name)
+
+    @AsyncStatus.wrap
+    async def set(self, value: float) -> None:
+        await self.setpoint.set(value)
+        # a refused put leaves SETPOINT as it was; ophyd-async 0.21 passes the refusal as a
+        # success (aioca's error is a falsy exception, which its retry wrapper drops), so
+        # the readback is the check, and a refusal fails the move at once
+        if (now := await self.setpoint.get_value(cached=False)) != value:
+            raise ValueError(f"leveler refused setpoint {value!r} m (it stays {now!r} m); "
+                             "the daemon's journal says why")
+        if self._settle_m is not None:
+            tol = self._settle_m
+            await wait_for_value(self.reading, lambda r: abs(r - value) <= tol,
+                                 timeout=self._settle_timeout_s)
