@@ -153,3 +153,47 @@ def test_hostile_puts_are_refused_and_reach_nothing(start_daemon: Any) -> None:
     events = read_log(next(d.logs.glob("*.mcap"))).events
     assert not [e for e in events if e["kind"] in ("tune", "reload", "procedure")]
     assert [e["detail"]["new"] for e in events if e["kind"] == "state"] == ["engaged", "idle"]
+
+
+def server_process(daemon_pid: int) -> int:
+    """The pid of the daemon's EPICS server process (a child of its relay thread)."""
+    from pathlib import Path
+
+    for task in Path(f"/proc/{daemon_pid}/task").iterdir():
+        for pid in (task / "children").read_text().split():
+            if b"leveler.live.epics_ioc" in Path(f"/proc/{pid}/cmdline").read_bytes():
+                return int(pid)
+    raise AssertionError("no EPICS server process under the daemon")
+
+
+def gone(pid: int, within_s: float) -> bool:
+    import os
+
+    deadline = time.monotonic() + within_s
+    while time.monotonic() < deadline:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def test_the_server_process_dying_leaves_the_loop_and_an_error_line(start_daemon: Any) -> None:
+    """The PVs run in a process of their own: killed, the loop levels on, the journal says
+    so once; the daemon killed, the server ends too rather than holding the port."""
+    import os
+    import signal
+
+    d, _ = epics_daemon(start_daemon)
+    os.kill(server_process(d.proc.pid), signal.SIGKILL)
+    time.sleep(1.0)
+    status = json.loads(d.cli("status", "--json").stdout)
+    assert status["state"] == "engaged" and not status["loop"]["stalled"]
+    err = d.stop()
+    assert err.count("EPICS server stopped") == 1, err
+    d, _ = epics_daemon(start_daemon)
+    server = server_process(d.proc.pid)
+    d.proc.kill()
+    d.proc.communicate(timeout=10)
+    assert gone(server, within_s=10), "the EPICS server outlived the daemon"

@@ -10,7 +10,7 @@ from conftest import REPO
 
 pytest.importorskip("caproto", reason="caproto (the epics extra) is not installed")
 
-from leveler.live.epics import _groups
+from leveler.live.epics_ioc import _groups
 
 DISPLAY = REPO / "config" / "phoebus" / "leveler.bob"
 

@@ -228,3 +228,23 @@ def test_the_constraints_pin_every_runtime_dependency_within_its_bounds() -> Non
         version = pins.get(req.name.lower().replace("_", "-"))
         assert version is not None, f"{req.name} is not pinned"
         assert req.specifier.contains(version), f"{req.name}=={version} outside {req.specifier}"
+
+
+@needs_analyze
+def test_the_live_network_drop_in_opens_loopback_only_and_stays_within_2(
+        unit_file: Path) -> None:
+    """systemd/live-network.conf (docs/live.md): the unit with it applied still verifies,
+    keeps its exposure at most 2.0, and allows IP to localhost alone."""
+    drop = (REPO / "systemd" / "live-network.conf").read_text()
+    assert settings(drop)["IPAddressAllow"] == ["localhost"]
+    assert settings(drop)["IPAddressDeny"] == ["any"]
+    merged = unit_file.parent / "merged" / "leveler.service"
+    merged.parent.mkdir()
+    merged.write_text(unit_file.read_text() + "\n" + drop)  # a drop-in's lines come last
+    res = analyze("verify", str(merged), cwd=unit_file.parent)
+    assert res.returncode == 0, res.stdout + res.stderr
+    res = analyze("security", "--offline=true", "--threshold=20", str(merged),
+                  cwd=merged.parent)
+    m = re.search(r"Overall exposure level for leveler\.service: (\d+\.\d+)", res.stdout)
+    assert m and float(m.group(1)) <= MAX_EXPOSURE, res.stdout + res.stderr
+    assert "Service may allocate Internet sockets" in res.stdout  # the drop-in took effect

@@ -15,7 +15,7 @@ from ophyd_async.epics.core import epics_signal_r, epics_signal_rw
 
 
 class LoopState(StrictEnum):
-    """LEV:STATE's choices, in the server's order (leveler.live.epics.STATES)."""
+    """LEV:STATE's choices, in the server's order (leveler.live.epics_ioc.STATES)."""
 
     IDLE = "idle"
     ENGAGED = "engaged"
