@@ -12,7 +12,7 @@ from typing import Any, Literal
 from leveler.drivers.modbus_config import ModbusActuatorConfig, ModbusSensorConfig
 from leveler.drivers.nidaq_config import NidaqActuatorConfig, NidaqSensorConfig
 from leveler.drivers.serial_config import SerialPiezoConfig, SerialSensorConfig
-from leveler.drivers.simulated import FaultSpec
+from leveler.drivers.simulated_config import FaultSpec
 from leveler.live.config import EpicsConfig, LiveConfig
 from leveler.log.rotate import LogConfig
 from leveler.loop.cycle import LoopConfig

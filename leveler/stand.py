@@ -6,10 +6,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from leveler.drivers.base import Actuator, Sensor
-from leveler.drivers.simulated import SimulatedStand
 from leveler.records import Truth
 from leveler.settings import Config
-from leveler.sim.plant import Plant
 
 
 @dataclass
@@ -67,6 +65,11 @@ def open_stand(cfg: Config, seed: int | None = None) -> Stand:
         actuator = NidaqActuator(cfg.actuator.nidaq)
     if cfg.sensor.backend != "sim":
         return Stand(sensor, actuator, None)
+    # the simulation, and scipy with it, only for a simulated stand: a hardware daemon
+    # stays lean (issue 21)
+    from leveler.drivers.simulated import SimulatedStand
+    from leveler.sim.plant import Plant
+
     dt_s = 1.0 / cfg.loop.rate_hz
     plant = Plant(cfg.plant, dt_s, cfg.sim.seed if seed is None else seed)
     sim = SimulatedStand(plant, cfg.actuator.safe_v, hang_at_s=cfg.sim.hang_at_s,

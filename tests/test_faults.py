@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from test_loop import Memory
 
-from leveler.drivers.simulated import FaultSpec
+from leveler.drivers.simulated_config import FaultSpec
 from leveler.log.reader import read_log
 from leveler.loop.clock import VirtualClock
 from leveler.loop.cycle import ENGAGED, FAULT, Loop

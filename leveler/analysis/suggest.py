@@ -160,23 +160,6 @@ def loop_margins(params: PlantParams, rate_hz: float, kp: float, ki: float, kd: 
     )
 
 
-def predicted_instability(params: PlantParams, rate_hz: float, kp: float, ki: float,
-                          kd: float, d_filter_tau_s: float) -> str | None:
-    """Why the plant model says these gains make an unstable loop, or None if they do not.
-
-    Only the closed-loop poles (milliseconds): `tune` and a reload ask this before they
-    apply new gains, so a dropped derivative or a typo cannot set the stand ringing."""
-    loop = controller_tf(kp, ki, kd, d_filter_tau_s, rate_hz) * plant_tf(params, rate_hz)
-    poles = np.asarray(control.feedback(loop, 1).poles())
-    if poles.size == 0 or np.abs(poles).max() < 1.0:  # no pole: all gains 0, no feedback
-        return None
-    worst = poles[np.argmax(np.abs(poles))]
-    f_hz = abs(np.angle(worst)) * rate_hz / (2 * np.pi)
-    return (f"the plant model predicts an unstable loop at {rate_hz:g} Hz: a closed-loop pole "
-            f"at |z| = {abs(worst):.4g} ({f_hz:.3g} Hz) with kp {kp:g} V/m, ki {ki:g} V/(m s), "
-            f"kd {kd:g} V s/m, d_filter_tau_s {d_filter_tau_s:g} s")
-
-
 def _round_toward_zero(x: float) -> float:
     """Three significant digits, rounded toward zero (a gain never rounds up past a limit)."""
     if x == 0:

@@ -29,6 +29,7 @@ from types import FrameType
 from typing import Any
 
 from leveler import __version__
+from leveler.analysis.stability import predicted_instability
 from leveler.daemon.control_server import (
     ControlServer,
     Peer,
@@ -266,8 +267,6 @@ class Daemon:
 
     def _instability(self, plant: PlantParams, c: ControllerConfig) -> str | None:
         """Why the plant model predicts `c`'s gains unstable at the running rate, or None."""
-        from leveler.analysis.suggest import predicted_instability  # python-control: off the loop
-
         return predicted_instability(plant, self.cfg.loop.rate_hz, c.kp_v_per_m,
                                      c.ki_v_per_m_s, c.kd_v_s_per_m, c.d_filter_tau_s)
 

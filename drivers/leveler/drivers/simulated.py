@@ -9,30 +9,11 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
-from typing import Literal
 
 from leveler.drivers.base import Block, DriverError, Reading, Status
+from leveler.drivers.simulated_config import FaultSpec
 from leveler.records import Truth
 from leveler.sim.plant import Plant
-
-FaultKind = Literal["timeout", "nan", "stuck", "railed", "spike", "write_fail", "disconnect",
-                    "clock_step"]
-
-
-@dataclass(frozen=True, slots=True)
-class FaultSpec:
-    """One fault of the simulated stand (`[[sim.faults]]`), from at_s for duration_s of loop
-    time (0: one cycle). size: a spike's height [m], a wall-clock step [s] (the daemon
-    applies those); unused by the other kinds."""
-
-    kind: FaultKind
-    at_s: float = field(default=0.0, metadata={"ge": 0.0})
-    duration_s: float = field(default=0.0, metadata={"ge": 0.0})
-    size: float = 0.0
-
-    def active(self, t_s: float, dt_s: float) -> bool:
-        return self.at_s <= t_s < self.at_s + max(self.duration_s, dt_s)
 
 
 class SimulatedStand:

@@ -25,9 +25,10 @@ from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar, Literal, Protocol
 
 import numpy as np
-from scipy.signal import cont2discrete, lfilter, lfilter_zi
-from scipy.special import ndtr
 
+# scipy is imported where an effect computes, not here: the effects are also the plant's
+# config ([plant.effects]), which a daemon on hardware reads without simulating anything,
+# and importing scipy.signal costs it 0.5 s and tens of MiB (issue 21)
 from leveler.typed_config import non_negative, positive
 
 Stage = Literal["actuator", "tilt", "response", "sensor"]
@@ -370,6 +371,8 @@ class TemperatureCoupling(Effect):
         for lag in lags:
             k = math.exp(-sig.dt_s / lag)
             b, a = np.convolve(b, [1 - k]), np.convolve(a, [1, -k])
+        from scipy.signal import lfilter, lfilter_zi
+
         zi = None if state is None else state.get("zi")
         if zi is None:
             zi = lfilter_zi(b, a) * temp[0]  # settled at the first temperature
@@ -745,12 +748,16 @@ class ExtraResonance(Effect):
 
     def discrete(self, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
         """ZOH-discretized band-pass (unit gain at resonance) as lfilter coefficients."""
+        from scipy.signal import cont2discrete
+
         w = 2 * math.pi * self.frequency_hz
         num, den = [w / self.q, 0.0], [1.0, w / self.q, w * w]
         b, a, _ = cont2discrete((num, den), dt_s, method="zoh")
         return np.ravel(b), np.ravel(a)
 
     def response(self, phi_u: np.ndarray, static_m_per_rad: float, sig: Signals) -> np.ndarray:
+        from scipy.signal import lfilter
+
         b, a = self.discrete(sig.dt_s)
         return self.gain * static_m_per_rad * lfilter(b, a, phi_u - phi_u[0])
 
@@ -928,6 +935,8 @@ def _expected_excess(v: np.ndarray, s: float) -> np.ndarray:
             e -= ((-1) ** (k + 1) * math.exp(-2 * math.pi**2 * k * k * s * s) / (math.pi * k)
                   * np.sin(2 * math.pi * k * v))
         return e
+    from scipy.special import ndtr
+
     e = np.zeros_like(v)
     for j in range(int(6 * s) + 2):  # P(reading above / below the nearest level by j+1)
         e += ndtr((v - j - 0.5) / s) - ndtr((-v - j - 0.5) / s)

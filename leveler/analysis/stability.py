@@ -1,0 +1,64 @@
+"""Would these PID gains make the loop on the plant model unstable? numpy alone, for the daemon.
+
+The daemon asks before it applies gains (`tune`, a reload, engaging on start). python-control
+(leveler.analysis.suggest) answers the same question and much more, but brings scipy and
+matplotlib into the real-time process, about a second of start-up and tens of MiB. Here the
+closed loop of `leveler.loop.pid.PID` on the discretized plant is one state-space matrix, and
+its eigenvalues are the closed-loop poles; tests/test_stability.py holds them to
+python-control's `feedback(controller * plant).poles()` over random gains and stands.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from leveler.sim.params import PlantParams
+from leveler.sim.pendulum import discrete_matrices
+
+
+def closed_loop_matrix(params: PlantParams, rate_hz: float, kp: float, ki: float, kd: float,
+                       d_filter_tau_s: float) -> np.ndarray:
+    """x_(n+1) = M x_n for the plant's state, then the integrator's and the derivative
+    filter's (each only with its gain non-zero, as suggest.controller_tf leaves them out).
+
+    Plant: x' = A x + b u [V], reading y = x[0] [m] (strictly proper). Controller on e = -y:
+    P: kp e; I: ki dt s with s' = s + e; D: kd (z - 1) / ((tau + dt) z - tau) on e, i.e.
+    g e + g (alpha - 1) w with w' = alpha w + e, g = kd / (tau + dt), alpha = tau / (tau + dt).
+    """
+    pe, dt = params.pendulum, 1.0 / rate_hz
+    a, b = discrete_matrices(pe, dt)
+    bv = b * (params.piezo.gain_m_per_v / params.platform.support_spacing_m * pe.sensor_arm_m)
+    c = np.array([1.0, 0.0, 0.0])
+    g = kd / (d_filter_tau_s + dt) if kd else 0.0
+    alpha = d_filter_tau_s / (d_filter_tau_s + dt)
+    blocks: list[tuple[float, float]] = []  # (its state's gain into u, its pole); fed by e
+    if ki:
+        blocks.append((ki * dt, 1.0))
+    if kd:
+        blocks.append((g * (alpha - 1.0), alpha))
+    n = 3 + len(blocks)
+    m = np.zeros((n, n))
+    m[:3, :3] = a - np.outer(bv, (kp + g) * c)
+    for j, (gain, pole) in enumerate(blocks, start=3):
+        m[:3, j] = bv * gain  # the block's state drives u
+        m[j, :3] = -c         # fed by e = -y
+        m[j, j] = pole
+    return m
+
+
+def predicted_instability(params: PlantParams, rate_hz: float, kp: float, ki: float,
+                          kd: float, d_filter_tau_s: float) -> str | None:
+    """Why the plant model says these gains make an unstable loop, or None if they do not.
+
+    Only the closed-loop poles (microseconds): `tune` and a reload ask this before they
+    apply new gains, so a dropped derivative or a typo cannot set the stand ringing."""
+    if not (kp or ki or kd):  # no feedback: the open plant, which the config says is stable
+        return None
+    poles = np.linalg.eigvals(closed_loop_matrix(params, rate_hz, kp, ki, kd, d_filter_tau_s))
+    worst = poles[np.argmax(np.abs(poles))]
+    if abs(worst) < 1.0:
+        return None
+    f_hz = abs(np.angle(worst)) * rate_hz / (2 * np.pi)
+    return (f"the plant model predicts an unstable loop at {rate_hz:g} Hz: a closed-loop pole "
+            f"at |z| = {abs(worst):.4g} ({f_hz:.3g} Hz) with kp {kp:g} V/m, ki {ki:g} V/(m s), "
+            f"kd {kd:g} V s/m, d_filter_tau_s {d_filter_tau_s:g} s")
