@@ -37,6 +37,7 @@ SECTIONS = (
     "sim_speed",
     "pid_speed",
     "control_socket",
+    "daemon_startup",  # time to READY and RSS, simulated and hardware (bench/daemon_startup.py)
     "diagnose_speed",
 )
 KEYS = ("section", "what", "value", "unit", "baseline", "ratio", "goal", "met", "note")

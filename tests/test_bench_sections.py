@@ -16,7 +16,7 @@ BENCH = Path(__file__).resolve().parents[1] / "bench"
 def bench_path(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
     monkeypatch.syspath_prepend(str(BENCH))
     yield
-    for name in ("common", "sim_speed", "logging_speed", "pid_speed"):
+    for name in ("common", "sim_speed", "logging_speed", "pid_speed", "daemon_startup"):
         sys.modules.pop(name, None)
 
 
@@ -69,3 +69,17 @@ def test_pid_baseline_gets_the_same_job(bench_path: None) -> None:
     # Both rail both ways on this input: the features (slew, anti-windup) are exercised.
     assert min(outs) == ps.LO and max(outs) == ps.HI
     assert min(refs) == ps.LO and max(refs) == ps.HI
+
+
+def test_the_startup_bench_times_a_real_daemon_to_ready(bench_path: None, tmp_path: Path) -> None:
+    """daemon_startup's figures come from a real daemon's READY=1 and its /proc status, on
+    a config that reports READY after one good sample and logs into the scratch directory."""
+    ds = _import("daemon_startup")
+    config = ds._config(tmp_path, "sim.toml", {})
+    text = config.read_text()
+    assert "ready_samples = 1" in text and f'dir = "{tmp_path / "logs"}"' in text
+    ready_s, rss_mib = ds.start(config, tmp_path)
+    assert 0.05 < ready_s < 30 and 30 < rss_mib < 1000
+    assert list((tmp_path / "logs").glob("*.mcap"))  # it ran and logged where it was told
+    base_s, base_mib = ds.baseline()
+    assert 0 < base_s < ready_s and 5 < base_mib < rss_mib  # numpy alone: less of both

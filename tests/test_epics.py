@@ -35,7 +35,10 @@ for op in json.loads(sys.argv[1]):
     pv = epics.PV(name)
     wait = op.get("timeout", 5)  # 1 s for a PV that should not exist: absence is a timeout
     value = pv.get(timeout=wait, as_string=op.get("string", False))
-    ctrl = pv.get_ctrlvars(timeout=wait) if pv.connected else {}
+    if not pv.connected:  # its units, severity... would each wait for it again
+        out[op["pv"]] = {"connected": False}
+        continue
+    ctrl = pv.get_ctrlvars(timeout=wait)
     out[op["pv"]] = {"value": value, "units": pv.units, "precision": pv.precision,
                      "severity": pv.severity, "write": pv.write_access,
                      "connected": pv.connected,
