@@ -7,6 +7,7 @@ checked as `leveler tune` checks it and logged with the client's user@host."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import time
@@ -49,9 +50,26 @@ print(json.dumps(out))
 """
 
 
-def ca(port: int, *ops: dict[str, Any]) -> dict[str, Any]:
-    import os
+#: puts of the wrong type, straight onto the wire: caproto's own client does not convert
+WRONG_TYPES = """
+import json
+from caproto import ChannelType
+from caproto.sync.client import write
+out = []
+for name, data, dtype in (("LEV:KP", ["abc"], ChannelType.STRING),
+                          ("LEV:SETPOINT", [1e-9, 2e-9, 3e-9], ChannelType.DOUBLE),
+                          ("LEV:ENGAGE", ["yes"], ChannelType.STRING),
+                          ("LEV:KI", [b"\\xff" * 40], ChannelType.STRING)):
+    try:
+        write(name, data, data_type=dtype, notify=True, timeout=5, repeater=False)
+        out.append("ok")
+    except Exception as exc:
+        out.append(type(exc).__name__ + ": " + str(exc)[:200])
+print(json.dumps(out))
+"""
 
+
+def ca(port: int, *ops: dict[str, Any]) -> dict[str, Any]:
     proc = subprocess.run([sys.executable, "-c", CLIENT, json.dumps(ops)],
                           env={**os.environ, **ca_env(port)}, capture_output=True, text=True,
                           timeout=90)
@@ -138,14 +156,21 @@ def test_stale_data_is_invalid_and_a_fault_is_major(start_daemon: Any) -> None:
 
 def test_hostile_puts_are_refused_and_reach_nothing(start_daemon: Any) -> None:
     """Out-of-range, unstable and non-finite values, a switch put 7: each refused with its
-    reason, the loop's gains and state as they were, no tune event in the log. (A string
-    to a numeric PV is refused by the client library before it is sent.)"""
+    reason, the loop's gains and state as they were, no tune event in the log. Wrong types
+    on the wire too (pyepics refuses a string to a numeric PV before sending it, so
+    caproto's client sends them raw): text to a gain, an array to the setpoint, a string
+    to ENGAGE."""
     d, port = epics_daemon(start_daemon, writable=True)
     before = json.loads(d.cli("status", "--json").stdout)
     got = ca(port, {"pv": "KP", "put": 1e30},
              {"pv": "KD", "put": -1.0}, {"pv": "SETPOINT", "put": 1.0},
              {"pv": "ENGAGE", "put": 7}, {"pv": "RESET", "put": -3},
              {"pv": "KI", "put": float("nan")}, {"pv": "STATE", "string": True})
+    raw = subprocess.run([sys.executable, "-c", WRONG_TYPES], capture_output=True,
+                         text=True, timeout=60, env={**os.environ, **ca_env(port)})
+    assert raw.returncode == 0, raw.stderr
+    answers = json.loads(raw.stdout.strip().splitlines()[-1])
+    assert len(answers) == 4 and all("ECA_PUTFAIL" in a for a in answers), answers
     after = json.loads(d.cli("status", "--json").stdout)
     assert after["controller"] == before["controller"]
     assert after["state"] == "engaged" == got["STATE"]["value"]
