@@ -127,16 +127,17 @@ def test_a_client_that_never_reads_costs_bounded_memory(start_daemon: Any) -> No
                                       max_queue=1) as ws:
             await subscribe_all(ws, await advertised(ws))
             rss = []
-            for _ in range(3):  # buffers fill first: ours, the kernel's, the server's queue
-                await asyncio.sleep(5)
+            for _ in range(4):  # buffers fill first: ours, the kernel's, the server's queue
+                await asyncio.sleep(4)
                 rss.append(rss_kib())
             return rss
 
-    # unread, every 5 s: 5000 samples and 5000 truths at 1 kHz, about 4 MB of JSON, so a
-    # server that queued them all would grow past the 2 MiB allowed between the last two
+    # unread, every 4 s: 4000 samples and 4000 truths at 1 kHz, about 3 MB of JSON, so a
+    # server that queued them all would grow some 6 MB over the last two intervals (the
+    # first is the buffers filling); 4 MiB allowed, for the allocator's own breathing
     rss = asyncio.run(stall())
-    print(f"RSS every 5 s with the client asleep: {rss} KiB")
-    assert rss[2] - rss[1] < 2048 and rss[2] - rss[0] < 4096, f"RSS grows: {rss} KiB"
+    print(f"RSS every 4 s with the client asleep: {rss} KiB")
+    assert rss[3] - rss[1] < 4096, f"RSS grows: {rss} KiB"
     status = json.loads(d.cli("status", "--json").stdout)
     assert status["state"] == "engaged" and not status["loop"]["stalled"]
     d.stop()

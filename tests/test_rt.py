@@ -42,5 +42,5 @@ def test_freezing_the_heap_leaves_the_collector_only_what_comes_later() -> None:
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
                          timeout=60, check=True).stdout.split()
     frozen, old_left, count = (int(v) for v in out)
-    assert frozen > 50_000 and count == frozen  # the daemon's modules, numpy, ...
+    assert frozen > 10_000 and count == frozen  # the daemon's modules, numpy (no scipy)
     assert old_left < 1_000  # what a full collection still scans of them: nearly nothing
