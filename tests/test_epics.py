@@ -225,3 +225,14 @@ def test_the_server_process_dying_leaves_the_loop_and_an_error_line(start_daemon
     d.proc.kill()
     d.proc.communicate(timeout=10)
     assert gone(server, within_s=10), "the EPICS server outlived the daemon"
+
+
+def test_an_interface_it_cannot_bind_is_a_clear_config_error(start_daemon: Any) -> None:
+    """An address not on this machine: the daemon says which and exits 2, the log finished."""
+    d = start_daemon(wait_socket=False, edit=lambda text: text + (
+        '\n[epics]\nserve = true\ninterfaces = ["10.255.255.1"]\n'))
+    _, err = d.proc.communicate(timeout=60)
+    assert d.proc.returncode == 2, err
+    assert "[epics] cannot serve on 10.255.255.1" in err and "Traceback" not in err
+    (log,) = d.logs.glob("*.mcap")
+    assert read_log(log).complete
