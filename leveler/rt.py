@@ -6,6 +6,11 @@ import contextlib
 import ctypes
 import gc
 import os
+import threading
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+T = TypeVar("T")
 
 
 def demote_thread() -> None:
@@ -18,6 +23,29 @@ def demote_thread() -> None:
     with contextlib.suppress(OSError, AttributeError):
         if os.sched_getscheduler(0) != os.SCHED_OTHER:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+
+
+def on_normal_thread(fn: Callable[[], T]) -> T:
+    """fn() run on a new thread at normal scheduling: its result, or its exception.
+
+    For a library that starts threads of its own (the Foxglove server's network runtime):
+    a thread inherits its creator's policy, so started from the daemon's main thread they
+    would run at the loop's SCHED_FIFO priority under the service."""
+    box: dict[str, Any] = {}
+
+    def run() -> None:
+        demote_thread()
+        try:
+            box["result"] = fn()
+        except BaseException as exc:  # handed to the caller
+            box["error"] = exc
+
+    t = threading.Thread(target=run, name="normal-priority start")
+    t.start()
+    t.join()
+    if "error" in box:
+        raise box["error"]
+    return box["result"]  # type: ignore[no-any-return]
 
 
 def background_thread() -> None:

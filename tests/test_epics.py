@@ -41,11 +41,14 @@ for op in json.loads(sys.argv[1]):
         continue
     ctrl = pv.get_ctrlvars(timeout=wait)
     out[op["pv"]] = {"value": value, "units": pv.units, "precision": pv.precision,
-                     "severity": pv.severity, "write": pv.write_access,
+                     "severity": pv.severity, "status": pv.status,
+                     "write": pv.write_access,
                      "connected": pv.connected,
                      "limits": [ctrl.get(k) for k in ("lower_alarm_limit",
                                 "lower_warning_limit", "upper_warning_limit",
-                                "upper_alarm_limit")]}
+                                "upper_alarm_limit")],
+                     "display": [ctrl.get(k) for k in ("lower_disp_limit",
+                                 "upper_disp_limit")]}
 print(json.dumps(out))
 """
 
@@ -84,7 +87,7 @@ def test_read_only_pvs_carry_units_precision_and_no_alarm(start_daemon: Any) -> 
              {"pv": "STATE", "string": True}, {"pv": "KI", "timeout": 1},
              {"pv": "READING", "put": 1e-6}, {"pv": "STATE", "string": True})
     status = json.loads(d.cli("status", "--json").stdout)
-    assert status["live"]["epics"] == {"prefix": "LEV:", "writable": False,
+    assert status["live"]["epics"] == {"serving": True, "prefix": "LEV:", "writable": False,
                                        "interfaces": ["127.0.0.1"]}
     for name, units in (("READING", "m"), ("TILT", "rad"), ("PIEZO", "V"), ("I", "V"),
                         ("PERIOD_P99", "s")):
@@ -134,7 +137,24 @@ def test_a_piezo_near_its_rail_is_minor(start_daemon: Any) -> None:
     assert got["PIEZO"]["value"] == pytest.approx(148.0)
     assert got["PIEZO"]["severity"] == 1  # MINOR: within 5 % of 150 V
     assert got["PIEZO"]["limits"] == [0.0, 7.5, 142.5, 150.0]  # LOLO, LOW, HIGH, HIHI [V]
+    assert got["PIEZO"]["display"] == [0.0, 150.0]  # what a Phoebus bar spans
     d.stop()
+
+
+def test_a_saturated_command_is_major_on_the_side_it_pushed(start_daemon: Any) -> None:
+    """Capped at 60 V while the loop wants its usual ~75 V: HIHI (at the top of its limits),
+    though 60 V is in the lower half of the range; held up at 90 V: LOLO."""
+    d, port = epics_daemon(start_daemon)
+    assert "applied" in d.cli("tune", "--max-v", "60").stdout
+    time.sleep(1.0)
+    high = ca(port, {"pv": "PIEZO"})["PIEZO"]
+    d.cli("tune", "--max-v", "150")
+    assert "applied" in d.cli("tune", "--min-v", "90").stdout
+    time.sleep(1.0)
+    low = ca(port, {"pv": "PIEZO"})["PIEZO"]
+    d.stop()
+    assert (high["severity"], high["status"]) == (2, 3), high  # MAJOR, HIHI
+    assert (low["severity"], low["status"]) == (2, 5), low  # MAJOR, LOLO
 
 
 def test_stale_data_is_invalid_and_a_fault_is_major(start_daemon: Any) -> None:
@@ -149,8 +169,10 @@ def test_stale_data_is_invalid_and_a_fault_is_major(start_daemon: Any) -> None:
     while json.loads(d.cli("status", "--json").stdout)["state"] != "fault":
         assert time.monotonic() < deadline, "no fault"
         time.sleep(0.1)
-    got = ca(port, {"pv": "STATE", "string": True})
+    got = ca(port, {"pv": "STATE", "string": True}, {"pv": "FAULT", "string": True})
     assert got["STATE"]["value"] == "fault" and got["STATE"]["severity"] == 2  # MAJOR
+    reason = json.loads(d.cli("status", "--json").stdout)["fault_reason"]
+    assert len(reason) > 40 and got["FAULT"]["value"] == reason  # whole, not a DBR_STRING's 40
     d.stop()
 
 
@@ -236,3 +258,24 @@ def test_an_interface_it_cannot_bind_is_a_clear_config_error(start_daemon: Any) 
     assert "[epics] cannot serve on 10.255.255.1" in err and "Traceback" not in err
     (log,) = d.logs.glob("*.mcap")
     assert read_log(log).complete
+
+
+def test_a_frozen_daemon_makes_its_readings_invalid(start_daemon: Any) -> None:
+    """SIGSTOP: the daemon cannot say it stalled, so the server notices that no status came
+    (2 s here) and marks the readings INVALID; SIGCONT, and they are good again."""
+    import signal
+
+    d, port = epics_daemon(start_daemon)
+    d.proc.send_signal(signal.SIGSTOP)
+    try:
+        time.sleep(3.0)
+        frozen = ca(port, {"pv": "READING"}, {"pv": "PIEZO"}, {"pv": "STATE", "string": True})
+    finally:
+        d.proc.send_signal(signal.SIGCONT)
+    time.sleep(1.5)
+    thawed = ca(port, {"pv": "READING"}, {"pv": "STATE", "string": True})
+    err = d.stop()
+    assert all(frozen[k]["severity"] == 3 for k in ("READING", "PIEZO", "STATE")), frozen
+    assert frozen["STATE"]["value"] == "engaged"  # the last value, marked as stale
+    assert thawed["READING"]["severity"] == 0 and thawed["STATE"]["severity"] == 0, thawed
+    assert err.count("no status from the daemon") == 1

@@ -7,9 +7,12 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
+import shutil
 import struct
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -224,3 +227,35 @@ def test_malformed_and_hostile_input_is_rejected_and_reaches_nothing(start_daemo
     assert not {e["kind"] for e in events} & {"tune", "procedure", "reload"}  # nothing driven
     states = [e["detail"]["new"] for e in events if e["kind"] == "state"]
     assert states == ["engaged", "idle"], states  # closed at start, opened at stop: no other
+
+
+@pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() != 0
+                    or shutil.which("chrt") is None,
+                    reason="needs root and chrt to run the daemon under SCHED_FIFO")
+def test_the_servers_network_threads_run_below_the_loop(tmp_path: Path) -> None:
+    """Under SCHED_FIFO, as under the service: the Foxglove server's own (Rust) threads are
+    started at normal scheduling, not at the loop's priority they would inherit."""
+    from conftest import daemon_config
+
+    sock = Path(tempfile.mkdtemp(prefix="lv", dir="/tmp")) / "c.sock"
+    config = daemon_config(tmp_path, sock, rate_hz=20.0,
+                           edit=lambda text: text + LIVE.format(rate=20.0))
+    proc = subprocess.Popen(["chrt", "-f", "10", sys.executable, "-m", "leveler.cli", "run",
+                             "--config", str(config)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=tmp_path)
+    try:
+        deadline = time.monotonic() + 30
+        while not sock.exists():
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+            time.sleep(0.05)
+        policy = {}
+        for task in Path(f"/proc/{proc.pid}/task").iterdir():
+            name = (task / "comm").read_text().strip()
+            policy[f"{name}/{task.name}"] = os.sched_getscheduler(int(task.name))
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=30)
+    network = {k: v for k, v in policy.items() if k.startswith("tokio")}
+    assert network, f"no server threads found: {sorted(policy)}"
+    assert set(network.values()) == {os.SCHED_OTHER}, network
+    assert os.SCHED_FIFO in policy.values()  # the daemon itself does run real-time

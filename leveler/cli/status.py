@@ -81,5 +81,18 @@ def format_status(st: dict[str, Any]) -> str:
         f"{lp['period_p50_s'] * 1e3:.2f}/{lp['period_p99_s'] * 1e3:.2f}/"
         f"{lp['period_max_s'] * 1e3:.2f} ms, overruns {lp['overruns']}",
         _log_line(log),
+        *_live_lines(st.get("live") or {}),
     ]
     return "\n".join(lines)
+
+
+def _live_lines(live: dict[str, Any]) -> list[str]:
+    """The live view and the EPICS server, when the config turned them on."""
+    out = [f"live view   {live['foxglove']} (Foxglove)"] if live.get("foxglove") else []
+    ep = live.get("epics")
+    if ep:
+        out.append(f"epics       {ep['prefix']}* on {', '.join(ep['interfaces'])}, "
+                   + ("writable" if ep["writable"] else "read-only")
+                   + ("" if ep.get("serving", True) else
+                      "  STOPPED: the PVs are gone until leveler restarts (journal says why)"))
+    return out

@@ -340,6 +340,7 @@ class Daemon:
                     "faults": self.log.faults, "last_fault": self.log.last_fault},
             "live": {"foxglove": self.live.url if self.live is not None else None,
                      "epics": None if self.epics is None else {
+                         "serving": self.epics.serving,
                          "prefix": self.cfg.epics.prefix, "writable": self.cfg.epics.writable,
                          "interfaces": list(self.cfg.epics.interfaces)}},
         }

@@ -36,7 +36,8 @@ def _snapshot(st: dict[str, Any]) -> dict[str, Any]:
     return {
         "sample": None if s is None else {
             "sensor_m": s.sensor_m, "tilt_rad": st["tilt_rad"], "applied_v": s.applied_v,
-            "p_v": s.p_v, "i_v": s.i_v, "d_v": s.d_v, "saturated": bool(s.saturated)},
+            "p_v": s.p_v, "i_v": s.i_v, "d_v": s.d_v, "saturated": bool(s.saturated),
+            "limits_v": [st["controller"]["output_min_v"], st["controller"]["output_max_v"]]},
         "stalled": bool(loop["stalled"]), "period_p99_s": loop.get("period_p99_s", 0.0),
         "period_max_s": loop.get("period_max_s", 0.0), "overruns": int(loop["overruns"]),
         "state": st["state"], "fault_reason": st["fault_reason"],
@@ -58,7 +59,8 @@ class EpicsServer:
         self.cfg, self._status, self._act = cfg, status, act
         self._args = json.dumps({"prefix": cfg.prefix, "interfaces": list(cfg.interfaces),
                                  "writable": cfg.writable, "piezo_range_v": list(piezo_range_v),
-                                 "near_rail_fraction": cfg.piezo_near_rail_fraction})
+                                 "near_rail_fraction": cfg.piezo_near_rail_fraction,
+                                 "stale_after_s": max(3.0 / cfg.update_hz, 2.0)})
         self._proc: subprocess.Popen[bytes] | None = None
         self._closing = threading.Event()
         self._failed = ""
@@ -86,6 +88,8 @@ class EpicsServer:
             if self._ready.is_set() and not self._closing.is_set():
                 _log.error("EPICS server stopped: %s: %s; the PVs are gone until leveler "
                            "restarts", type(exc).__name__, exc)
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    self._proc.wait(timeout=5)  # type: ignore[union-attr]  # reaped
             self._failed = self._failed or f"{type(exc).__name__}: {exc}"
             self._ready.set()
         finally:
@@ -126,6 +130,12 @@ class EpicsServer:
         except Exception as exc:
             error = str(exc) or type(exc).__name__
         self._send({"reply": msg["put"], "error": error})
+
+    @property
+    def serving(self) -> bool:
+        """The server process is up and its relay runs (`leveler status` shows it)."""
+        return (self._thread.is_alive() and self._proc is not None
+                and self._proc.poll() is None)
 
     def close(self) -> None:
         """Stop the relay (which tells the child to stop), then wait for the child."""

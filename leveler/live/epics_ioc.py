@@ -17,9 +17,11 @@ import contextvars
 import itertools
 import json
 import logging
+import math
 import os
 import signal
 import sys
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -54,8 +56,9 @@ def _groups() -> tuple[type, type]:
         state = pvproperty(name="STATE", value="idle", dtype=ChannelType.ENUM,
                            enum_strings=list(STATES), read_only=True, alarm_group="STATE",
                            doc="loop state")
+        # a char waveform, not a DBR_STRING (40 characters): the whole reason, read as text
         fault = pvproperty(name="FAULT", value="", dtype=ChannelType.CHAR, max_length=256,
-                           report_as_string=True, read_only=True, alarm_group="FAULT",
+                           report_as_string=False, read_only=True, alarm_group="FAULT",
                            doc="why in fault")
 
     class Writable(Readable):  # type: ignore[misc]
@@ -73,13 +76,24 @@ def _groups() -> tuple[type, type]:
 #: caproto's messages that come with a traceback though nothing crashed: a put we refused
 #: (our warning says why) and a beacon no caRepeater listens for (the message says it)
 _EXPECTED = ("Invalid write request", "Failed to send beacon")
+_BEACON_QUIET_S = 3600.0
+_beacon_said = -math.inf
 
 
 def _refusal_without_traceback(record: logging.LogRecord) -> bool:
     """Keep the line, drop the traceback, for the expected messages: a journal full of
-    tracebacks reads as a crash at 3 a.m."""
-    if str(record.msg).startswith(_EXPECTED):
-        record.exc_info, record.exc_text = None, None
+    tracebacks reads as a crash at 3 a.m. A beacon nobody hears is said once an hour, not
+    every 15 s (without a caRepeater on the machine, every beacon fails)."""
+    global _beacon_said
+    if not str(record.msg).startswith(_EXPECTED):
+        return True
+    record.exc_info, record.exc_text = None, None
+    if str(record.msg).startswith("Failed to send beacon"):
+        now = time.monotonic()
+        if now - _beacon_said < _BEACON_QUIET_S:
+            return False
+        _beacon_said = now
+        record.msg = str(record.msg) + " (said once an hour; EPICS_CAS_BEACON_PORT sets it)"
     return True
 
 
@@ -94,9 +108,11 @@ class Ioc:
     """The PVs of `prefix`, refreshed from the daemon's status lines, puts handed to it."""
 
     def __init__(self, prefix: str, interfaces: list[str], writable: bool,
-                 piezo_range_v: tuple[float, float], near_rail_fraction: float) -> None:
+                 piezo_range_v: tuple[float, float], near_rail_fraction: float,
+                 stale_after_s: float) -> None:
         readable, writable_group = _groups()
         self.interfaces, self.writable = interfaces, writable
+        self._stale_after_s, self._last_status, self._stale = stale_after_s, time.monotonic(), False
         self.group = (writable_group if writable else readable)(prefix=prefix)
         self._range, self._near = piezo_range_v, near_rail_fraction
         self._pending: dict[int, asyncio.Future[str | None]] = {}
@@ -118,14 +134,17 @@ class Ioc:
             return
         lo, hi = self._range  # what Phoebus and the archiver show beside the severities
         near = self._near * (hi - lo)
-        await self.group.piezo.write_metadata(
-            lower_ctrl_limit=lo, upper_ctrl_limit=hi, lower_alarm_limit=lo,
-            upper_alarm_limit=hi, lower_warning_limit=lo + near, upper_warning_limit=hi - near)
+        await self.group.piezo.write_metadata(  # display limits too: Phoebus' bar uses them
+            lower_ctrl_limit=lo, upper_ctrl_limit=hi, lower_disp_limit=lo, upper_disp_limit=hi,
+            lower_alarm_limit=lo, upper_alarm_limit=hi, lower_warning_limit=lo + near,
+            upper_warning_limit=hi - near)
         _say({"ready": True})
+        watchdog = asyncio.create_task(self._watch_daemon())
         try:
             while line := await reader.readline():
                 msg = json.loads(line)
                 if "status" in msg:
+                    self._last_status, self._stale = time.monotonic(), False
                     try:
                         await self._update(msg["status"])
                     except Exception:  # one bad refresh must not freeze every PV for good
@@ -137,8 +156,26 @@ class Ioc:
                 elif msg.get("stop"):
                     break
         finally:
+            watchdog.cancel()
             server.cancel()
-            await asyncio.gather(server, return_exceptions=True)
+            await asyncio.gather(server, watchdog, return_exceptions=True)
+
+    async def _watch_daemon(self) -> None:
+        """A daemon that stops sending (frozen, or its relay stuck) cannot say it stalled:
+        its readings go INVALID here once no status came for stale_after_s."""
+        from caproto import AlarmSeverity, AlarmStatus
+
+        g = self.group
+        while True:
+            await asyncio.sleep(min(0.5, self._stale_after_s / 4))
+            if self._stale or time.monotonic() - self._last_status < self._stale_after_s:
+                continue
+            self._stale = True
+            _log.warning("EPICS: no status from the daemon for %.1f s; its PVs are INVALID "
+                         "until it answers again", time.monotonic() - self._last_status)
+            for pv in (g.reading, g.tilt, g.piezo, g.p, g.i, g.d, g.state):
+                await pv.write(pv.value, verify_value=False,
+                               severity=AlarmSeverity.INVALID_ALARM, status=AlarmStatus.TIMEOUT)
 
     async def _update(self, st: dict[str, Any]) -> None:
         from caproto import AlarmSeverity, AlarmStatus
@@ -183,9 +220,13 @@ class Ioc:
         lo, hi = self._range
         near = self._near * (hi - lo)
         v = s["applied_v"]
-        if s["saturated"] or not lo < v < hi:
+        if s["saturated"]:  # at the controller's limit: HIHI at its top, LOLO at its bottom
+            lo_v, hi_v = s["limits_v"]
             return {"severity": AlarmSeverity.MAJOR_ALARM, "status": AlarmStatus.HIHI
-                    if v >= (lo + hi) / 2 else AlarmStatus.LOLO}
+                    if abs(hi_v - v) < abs(v - lo_v) else AlarmStatus.LOLO}
+        if not lo < v < hi:
+            return {"severity": AlarmSeverity.MAJOR_ALARM, "status": AlarmStatus.HIHI
+                    if v >= hi else AlarmStatus.LOLO}
         if v > hi - near or v < lo + near:
             return {"severity": AlarmSeverity.MINOR_ALARM, "status": AlarmStatus.HIGH
                     if v >= (lo + hi) / 2 else AlarmStatus.LOW}
@@ -236,7 +277,8 @@ class Ioc:
                     if req:
                         await self._ask(req, who)
                 except Exception as exc:  # the client gets ECA_PUTFAIL with this text
-                    _log.warning("EPICS put %s = %r by %s refused: %s", instance.pvname, value,
+                    shown = value.tolist() if hasattr(value, "tolist") else value
+                    _log.warning("EPICS put %s = %r by %s refused: %s", instance.pvname, shown,
                                  who, exc)
                     raise
                 return value
@@ -251,7 +293,7 @@ def _say(msg: dict[str, Any]) -> None:
 
 def main(argv: list[str]) -> int:
     """argv[0]: the server's settings as JSON (prefix, interfaces, writable, piezo_range_v,
-    near_rail_fraction), from leveler.live.epics."""
+    near_rail_fraction, stale_after_s), from leveler.live.epics."""
     with contextlib.suppress(OSError, AttributeError):  # the daemon's priority is inherited:
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))  # network work, not RT
     for sig in (signal.SIGINT, signal.SIGTERM):  # Ctrl-C and `systemctl stop` reach the
@@ -262,7 +304,7 @@ def main(argv: list[str]) -> int:
         logging.getLogger(name).addFilter(_refusal_without_traceback)
     a = json.loads(argv[0])
     ioc = Ioc(a["prefix"], a["interfaces"], a["writable"], tuple(a["piezo_range_v"]),
-              a["near_rail_fraction"])
+              a["near_rail_fraction"], a["stale_after_s"])
     asyncio.run(ioc.main())
     return 0
 

@@ -21,7 +21,7 @@ from leveler.live.config import LiveConfig, parse_address
 from leveler.log.reader import EVENT_TOPIC, FOXGLOVE_LOG_TOPIC, SAMPLE_TOPIC, TRUTH_TOPIC
 from leveler.log.writer import SCHEMAS, encode, encode_event, foxglove_log
 from leveler.records import Event, Sample, Truth
-from leveler.rt import background_thread
+from leveler.rt import background_thread, on_normal_thread
 from leveler.typed_config import ConfigError
 
 ASD_TOPIC = "/leveler/live_asd"
@@ -59,8 +59,9 @@ class FoxgloveStream:
         host, port = parse_address(cfg.foxglove)
         self._ctx = foxglove.Context()
         try:
-            self.server = foxglove.start_server(name="leveler", host=host, port=port,
-                                                context=self._ctx)
+            # its network threads are started here, and inherit this thread's policy
+            self.server = on_normal_thread(lambda: foxglove.start_server(
+                name="leveler", host=host, port=port, context=self._ctx))
         except RuntimeError as exc:  # the SDK's error for a taken or forbidden address
             raise ConfigError(f"[live] foxglove = {cfg.foxglove!r}: cannot serve: {exc}"
                               ) from None
