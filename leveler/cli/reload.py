@@ -30,8 +30,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
 
 
 def run(args: argparse.Namespace) -> int:
-    # reload may load python-control into the daemon first: seconds on a busy machine
-    with Client(args.socket, timeout_s=60.0) as client, client.reading():
+    with Client(args.socket) as client, client.reading():
         print(format_reload(client.request("reload", accept_dropped=args.accept_dropped,
                                            force=args.force)))
     return 0

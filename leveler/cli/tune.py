@@ -21,7 +21,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         description="Change controller settings of the running daemon. Values are checked "
         "before they are applied; gain changes are bumpless (the piezo command does not jump). "
         "--persist also writes them into the daemon's config file (atomically, comments kept). "
-        "New gains that the plant model (python-control) predicts make the loop unstable are "
+        "New gains that the plant model predicts make the loop unstable (closed-loop poles) are "
         "refused unless --force. "
         "With --suggest, propose gains from the configured plant model (python-control) and "
         "print margins; --apply sends them.")
@@ -81,8 +81,7 @@ def run(args: argparse.Namespace) -> int:
     if not values:
         raise ClientError("nothing to change: give --kp, --ki, --kd, --setpoint, --min-v, "
                           "--max-v or --slew (or --suggest)")
-    # the first gain change loads python-control into the daemon: seconds on a busy machine
-    with Client(args.socket, timeout_s=60.0) as client:
+    with Client(args.socket) as client:
         reply = client.request("tune", persist=args.persist, force=args.force, **values)
         with client.reading():
             c = reply["controller"]
