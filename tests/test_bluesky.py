@@ -82,3 +82,53 @@ def test_a_scan_records_the_leveling_state_and_moves_the_setpoint(start_daemon: 
     d.stop()
     tunes = [e for e in read_log(next(d.logs.glob("*.mcap"))).events if e["kind"] == "tune"]
     assert len(tunes) == 2 and all(t["reason"].startswith("tune by EPICS ") for t in tunes)
+
+
+SUSPENDED = """
+import json
+import bluesky.plans as bp
+from bluesky import RunEngine
+from ophyd_async.core import init_devices
+from leveler.live.device import LevelerReadout, suspend_unless_engaged
+
+RE = RunEngine({})
+docs = []
+RE.subscribe(lambda name, doc: docs.append((name, doc)))
+with init_devices():
+    lev = LevelerReadout("LEV:")
+RE.install_suspender(suspend_unless_engaged(lev, sleep=0.5))
+print("READY", flush=True)
+RE(bp.count([lev], num=10, delay=0.5))
+events = [d for n, d in docs if n == "event"]
+print(json.dumps({"states": [e["data"]["lev-state"] for e in events],
+                  "times": [e["time"] for e in events],
+                  "stops": [d["exit_status"] for n, d in docs if n == "stop"]}, default=str))
+"""
+
+
+def test_a_scan_pauses_while_the_loop_is_open_and_resumes_when_it_closes(
+        start_daemon: Any) -> None:
+    import time
+
+    d, port = epics_daemon(start_daemon)
+    proc = subprocess.Popen([sys.executable, "-c", SUSPENDED], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, **ca_env(port)})
+    try:
+        assert proc.stdout is not None
+        assert proc.stdout.readline().strip() == "READY", proc.communicate(timeout=30)[1]
+        time.sleep(1.2)  # a few points recorded
+        d.cli("stop")  # the loop opened by hand: the scan must wait
+        time.sleep(3.0)
+        d.cli("start")
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err
+    got = json.loads(out.strip().splitlines()[-1])
+    d.stop()
+    assert got["stops"] == ["success"] and len(got["states"]) >= 10  # a redone point too
+    assert set(map(str, got["states"])) == {"engaged"}, got["states"]
+    gaps = [b - a for a, b in zip(got["times"], got["times"][1:])]
+    assert max(gaps) > 2.5, gaps  # the pause: no point while the loop was open

@@ -8,7 +8,12 @@ move the setpoint. Imported in the lab's Bluesky session, not by the daemon: it 
 
 from __future__ import annotations
 
+import asyncio
+from collections.abc import Callable
+from typing import Any
+
 from bluesky.protocols import Movable
+from bluesky.suspenders import SuspendWhenChanged
 from ophyd_async.core import AsyncStatus, StandardReadable, StrictEnum, wait_for_value
 from ophyd_async.core import StandardReadableFormat as Format
 from ophyd_async.epics.core import epics_signal_r, epics_signal_rw
@@ -67,3 +72,56 @@ class Leveler(LevelerReadout, Movable[float]):
             tol = self._settle_m
             await wait_for_value(self.reading, lambda r: abs(r - value) <= tol,
                                  timeout=self._settle_timeout_s)
+
+
+def suspend_unless_engaged(lev: LevelerReadout, *, sleep: float = 1.0) -> SuspendWhenChanged:
+    """A suspender for `RE.install_suspender`: the scan pauses while the loop is not engaged
+    (opened by hand, in fault, modulating) and resumes, `sleep` seconds after it is engaged
+    again, redoing the point it was at, so no point is recorded on an unlevelled stand."""
+    return SuspendWhenChanged(_V1View(lev.state), expected_value="engaged", allow_resume=True,
+                              sleep=sleep, tripped_message="the leveling loop is not engaged")
+
+
+class _V1View:
+    """An ophyd-async signal as bluesky's suspenders watch one (ophyd's subscribe(cb,
+    event_type, run) calling cb(value=...), and get()); ophyd-async offers
+    subscribe_reading only."""
+
+    def __init__(self, signal: Any) -> None:
+        self._signal = signal
+        self._subs: dict[Callable[..., None], Callable[[dict[str, Any]], None]] = {}
+        self.name = signal.name
+        self._last = ""
+
+    def get(self) -> str:
+        """The last value seen (the suspender's message quotes it)."""
+        return self._last
+
+    def subscribe(self, cb: Callable[..., None], event_type: Any = None,
+                  run: bool = True) -> None:
+        def on_reading(reading: dict[str, Any]) -> None:
+            self._last = str(next(iter(reading.values()))["value"])
+            cb(value=self._last)
+
+        self._subs[cb] = on_reading
+        _on_bluesky_loop(lambda: self._signal.subscribe_reading(on_reading))
+
+    def clear_sub(self, cb: Callable[..., None]) -> None:
+        fn = self._subs.pop(cb)
+        _on_bluesky_loop(lambda: self._signal.clear_sub(fn))
+
+
+def _on_bluesky_loop(fn: Callable[[], None]) -> None:
+    """fn() on the RunEngine's event loop, where ophyd-async subscribes (a suspender is
+    installed from the caller's thread, and may be removed from the loop itself)."""
+    from bluesky.run_engine import call_in_bluesky_event_loop
+
+    try:
+        asyncio.get_running_loop()
+    except RuntimeError:  # another thread: hand it over and wait
+        async def run() -> None:
+            fn()
+
+        call_in_bluesky_event_loop(run(), timeout=10)
+    else:
+        fn()
