@@ -113,15 +113,19 @@ class _V1View:
 
 def _on_bluesky_loop(fn: Callable[[], None]) -> None:
     """fn() on the RunEngine's event loop, where ophyd-async subscribes (a suspender is
-    installed from the caller's thread, and may be removed from the loop itself)."""
-    from bluesky.run_engine import call_in_bluesky_event_loop
+    installed from the caller's thread, which in Jupyter runs a loop of its own, and may be
+    removed from the RunEngine's loop itself)."""
+    from bluesky.run_engine import call_in_bluesky_event_loop, get_bluesky_event_loop
 
     try:
-        asyncio.get_running_loop()
-    except RuntimeError:  # another thread: hand it over and wait
-        async def run() -> None:
-            fn()
-
-        call_in_bluesky_event_loop(run(), timeout=10)
-    else:
+        here = asyncio.get_running_loop()
+    except RuntimeError:
+        here = None
+    if here is not None and here is get_bluesky_event_loop():
         fn()
+        return
+
+    async def run() -> None:
+        fn()
+
+    call_in_bluesky_event_loop(run(), timeout=10)
