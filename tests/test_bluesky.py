@@ -6,6 +6,7 @@ setpoint moves on the daemon, and a setpoint the daemon refuses fails the move."
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import subprocess
@@ -130,5 +131,5 @@ def test_a_scan_pauses_while_the_loop_is_open_and_resumes_when_it_closes(
     d.stop()
     assert got["stops"] == ["success"] and len(got["states"]) >= 10  # a redone point too
     assert set(map(str, got["states"])) == {"engaged"}, got["states"]
-    gaps = [b - a for a, b in zip(got["times"], got["times"][1:])]
+    gaps = [b - a for a, b in itertools.pairwise(got["times"])]
     assert max(gaps) > 2.5, gaps  # the pause: no point while the loop was open
