@@ -141,20 +141,28 @@ def test_a_piezo_near_its_rail_is_minor(start_daemon: Any) -> None:
     d.stop()
 
 
-def test_a_saturated_command_is_major_on_the_side_it_pushed(start_daemon: Any) -> None:
-    """Capped at 60 V while the loop wants its usual ~75 V: HIHI (at the top of its limits),
-    though 60 V is in the lower half of the range; held up at 90 V: LOLO."""
-    d, port = epics_daemon(start_daemon)
-    assert "applied" in d.cli("tune", "--max-v", "60").stdout
-    time.sleep(1.0)
-    high = ca(port, {"pv": "PIEZO"})["PIEZO"]
-    d.cli("tune", "--max-v", "150")
-    assert "applied" in d.cli("tune", "--min-v", "90").stdout
-    time.sleep(1.0)
-    low = ca(port, {"pv": "PIEZO"})["PIEZO"]
-    d.stop()
-    assert (high["severity"], high["status"]) == (2, 3), high  # MAJOR, HIHI
-    assert (low["severity"], low["status"]) == (2, 5), low  # MAJOR, LOLO
+@pytest.mark.parametrize(("applied_v", "saturated", "limits_v", "severity", "status"), [
+    (59.9, True, (0.0, 60.0), "MAJOR_ALARM", "HIHI"),  # capped at 60 V: the top, though low
+    (90.0, True, (90.0, 150.0), "MAJOR_ALARM", "LOLO"),  # held up at 90 V: the bottom
+    (150.0, False, (0.0, 150.0), "MAJOR_ALARM", "HIHI"),  # at the actuator's rail
+    (0.0, False, (0.0, 150.0), "MAJOR_ALARM", "LOLO"),
+    (145.0, False, (0.0, 150.0), "MINOR_ALARM", "HIGH"),  # within 5 % of 150 V
+    (5.0, False, (0.0, 150.0), "MINOR_ALARM", "LOW"),
+    (75.0, False, (0.0, 150.0), "NO_ALARM", "NO_ALARM"),
+])
+def test_the_piezo_alarm_names_the_side_it_is_pressed_against(
+        applied_v: float, saturated: bool, limits_v: tuple[float, float], severity: str,
+        status: str) -> None:
+    """A saturated command is HIHI at the top of the controller's limits and LOLO at the
+    bottom, whichever half of the actuator's range that is in."""
+    from caproto import AlarmSeverity, AlarmStatus
+
+    from leveler.live.epics_ioc import Ioc
+
+    ioc = Ioc("LEV:", ["127.0.0.1"], False, (0.0, 150.0), 0.05, 2.0)
+    got = ioc._piezo_alarm({"applied_v": applied_v, "saturated": saturated,
+                            "limits_v": list(limits_v)})
+    assert got == {"severity": AlarmSeverity[severity], "status": AlarmStatus[status]}
 
 
 def test_stale_data_is_invalid_and_a_fault_is_major(start_daemon: Any) -> None:
