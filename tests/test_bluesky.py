@@ -95,6 +95,7 @@ from leveler.live.device import LevelerReadout, suspend_unless_engaged
 RE = RunEngine({})
 docs = []
 RE.subscribe(lambda name, doc: docs.append((name, doc)))
+RE.subscribe(lambda name, doc: print("EVENT", flush=True), "event")
 with init_devices():
     lev = LevelerReadout("LEV:")
 RE.install_suspender(suspend_unless_engaged(lev, sleep=0.5))
@@ -118,7 +119,8 @@ def test_a_scan_pauses_while_the_loop_is_open_and_resumes_when_it_closes(
     try:
         assert proc.stdout is not None
         assert proc.stdout.readline().strip() == "READY", proc.communicate(timeout=30)[1]
-        time.sleep(1.2)  # a few points recorded
+        for _ in range(2):  # two points recorded, however slow the machine
+            assert proc.stdout.readline().strip() == "EVENT", proc.communicate(timeout=30)[1]
         d.cli("stop")  # the loop opened by hand: the scan must wait
         time.sleep(3.0)
         d.cli("start")
