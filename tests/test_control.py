@@ -58,9 +58,11 @@ def test_status_start_stop_through_the_cli(start_daemon) -> None:  # type: ignor
     assert d.stop() is not None and d.proc.returncode == 0
     (log,) = d.logs.glob("*.mcap")
     events = [(e["kind"], e["reason"]) for e in read_log(log).events]
-    assert ("state", "start by uid 0") in events or any(
-        k == "state" and r.startswith("start by uid") for k, r in events)
-    assert any(k == "state" and r.startswith("stop by uid") for k, r in events)
+    import pwd
+
+    me = f"uid {os.getuid()} ({pwd.getpwuid(os.getuid()).pw_name})"  # the peer, named
+    assert ("state", f"start by {me}") in events, events
+    assert ("state", f"stop by {me}") in events, events
 
 
 def dotted_controller(text: str) -> str:

@@ -15,6 +15,7 @@ import dataclasses
 import faulthandler
 import logging
 import os
+import pwd
 import queue
 import re
 import signal
@@ -182,7 +183,7 @@ class Daemon:
         _log.error("log: %s", message)
 
     def handle(self, req: dict[str, Any], peer: Peer) -> dict[str, Any]:
-        return self.request(req, f"uid {peer.uid}")
+        return self.request(req, _who(peer.uid))
 
     def request(self, req: dict[str, Any], who: str) -> dict[str, Any]:
         """One control request, checked as the socket checks it, on behalf of `who` (the
@@ -653,6 +654,15 @@ class Daemon:
         demote_thread()  # started by the loop thread: not at its real-time priority
         with contextlib.suppress(ProtocolError):  # reload() logged why
             self.reload("SIGHUP")
+
+
+def _who(uid: int) -> str:
+    """A socket peer as events name it: "uid 1000 (alice)", the name when the system knows
+    it (an EPICS put names its client as user@host; the log should read alike)."""
+    try:
+        return f"uid {uid} ({pwd.getpwuid(uid).pw_name})"
+    except KeyError:
+        return f"uid {uid}"
 
 
 def run_daemon(config_path: str | Path, duration_s: float | None = None) -> int:
