@@ -5,11 +5,11 @@ writes every module the process has imported (sys.modules) as it exits."""
 
 from __future__ import annotations
 
-import socket
 from collections.abc import Callable
 from pathlib import Path
 
 from conftest import daemon_config
+from test_backend_parity import free_port
 
 from leveler.emulate.modbus import ModbusEmulator
 from leveler.settings import load_config
@@ -25,12 +25,6 @@ def _write_modules():
         f.write("\\n".join(sorted(sys.modules)))
 atexit.register(_write_modules)
 """
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def run_and_log_imports(start_daemon: Callable[..., object], tmp_path: Path, base: str,

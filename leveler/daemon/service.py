@@ -561,7 +561,7 @@ class Daemon:
         t = 0.0
         try:
             self.server.start()
-            if cfg.epics.serve:  # its puts are answered by this thread, between cycles
+            if cfg.epics.serve:  # its puts come back through self.request, as the socket's
                 from leveler.live.epics import EpicsServer
 
                 lo, hi, _ = cfg.actuator_range_v()
