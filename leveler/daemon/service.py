@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import faulthandler
+import functools
 import logging
 import os
 import pwd
@@ -656,9 +657,12 @@ class Daemon:
             self.reload("SIGHUP")
 
 
+@functools.lru_cache(maxsize=64)
 def _who(uid: int) -> str:
     """A socket peer as events name it: "uid 1000 (alice)", the name when the system knows
-    it (an EPICS put names its client as user@host; the log should read alike)."""
+    it (an EPICS put names its client as user@host; the log should read alike). Looked up
+    once per uid: the passwd file is read on every lookup, and a client may send thousands
+    of requests a second on the thread that shares the loop's interpreter lock."""
     try:
         return f"uid {uid} ({pwd.getpwuid(uid).pw_name})"
     except KeyError:
