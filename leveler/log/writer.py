@@ -10,6 +10,8 @@ chunk would otherwise stay open for minutes). See docs/log-format.md.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import itertools
 import json
 import logging
 import os
@@ -18,6 +20,7 @@ import threading
 import time
 import zlib
 from collections import deque
+from collections.abc import Iterator
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 from types import TracebackType
@@ -164,6 +167,61 @@ _ERROR_KINDS = frozenset({"fault", "driver_error"})
 def encode(record: Sample | Truth | Environment | ThrustStand) -> bytes:
     """A record's JSON as the log holds it (NaN and infinities as null)."""
     return orjson.dumps(record, option=_RECORD_OPT)
+
+
+class Columns:
+    """n consecutive cycles' samples (and truth) as columns, queued as one item: a producer
+    that makes records far faster than one call each can carry (the virtual loop's kernel)
+    hands them over in bulk, and the writer encodes each as `encode` would, byte for byte.
+    A column is a sequence of n values (numbers or bools) or one value for all n."""
+
+    __slots__ = ("log_time_ns", "n", "sample", "t_s", "truth")
+
+    def __init__(self, sample: dict[str, Any], truth: dict[str, Any] | None,
+                 log_time_ns: list[int]) -> None:
+        self.n = len(log_time_ns)
+        for kind, cols, keys in (("sample", sample, _SAMPLE_KEYS), ("truth", truth, _TRUTH_KEYS)):
+            if cols is None:
+                continue
+            if list(cols) != keys:
+                raise ValueError(f"{kind} columns must be {keys}, got {list(cols)}")
+            for key, col in cols.items():
+                if not isinstance(col, np.ndarray | list):
+                    continue
+                if len(col) != self.n:
+                    raise ValueError(f"{kind} column {key} has {len(col)} values, not {self.n}")
+                if np.asarray(col).dtype.kind not in "biuf":
+                    raise ValueError(f"{kind} column {key}: only numbers and bools as columns")
+        self.sample, self.truth, self.log_time_ns = sample, truth, log_time_ns
+        t = sample["t_s"]
+        self.t_s = float(t[-1] if isinstance(t, np.ndarray | list) else t) if self.n else 0.0
+
+    def rows(self, which: str) -> Iterator[tuple[bytes, ...]]:
+        """Each cycle's JSON tokens in field order: a float column is encoded by one
+        orjson call on the whole list (the same shortest round-trip form a record gets)."""
+        cols = self.sample if which == "sample" else self.truth
+        assert cols is not None
+        tokens = []
+        for col in cols.values():
+            if isinstance(col, np.ndarray | list):
+                values = col.tolist() if isinstance(col, np.ndarray) else col
+                tokens.append(orjson.dumps(values, option=_RECORD_OPT)[1:-1].split(b","))
+            else:
+                tokens.append(itertools.repeat(orjson.dumps(col, option=_RECORD_OPT), self.n))
+        return zip(*tokens, strict=False)
+
+
+def _template(keys: list[str]) -> bytes:
+    """`%b` template of a record's JSON object, keys in the dataclass's order."""
+    return b"{" + b",".join(orjson.dumps(k) + b":%b" for k in keys) + b"}"
+
+
+_SAMPLE_KEYS = [f.name for f in dataclasses.fields(Sample)]
+_TRUTH_KEYS = [f.name for f in dataclasses.fields(Truth)]
+_SAMPLE_TEMPLATE = _template(_SAMPLE_KEYS)
+_TRUTH_TEMPLATE = _template(_TRUTH_KEYS)
+_COLUMNS = -1  # the queue's channel slot for a Columns item
+_COLUMN_BATCH = 4096  # cycles of a Columns item written between flush checks
 
 
 def encode_event(event: Event) -> bytes:
@@ -579,6 +637,19 @@ class LogWriter:
             return
         self._queue.append((channel, record, log_time_ns))
 
+    def columns(self, cols: Columns) -> None:
+        """Queue many cycles' records at once. It waits while an earlier item is still
+        queued: a bulk producer is never real-time, and pacing it here bounds the memory a
+        fast one could otherwise fill (`sample`'s backlog limit counts items, not cycles)."""
+        if self._error is not None or self._closed:
+            self._raise()
+        if cols.truth is not None and self._truth_ch is None:
+            self._raise()
+        self.wait_drained(max_backlog=1)
+        if cols.n:
+            self._queue.append((_COLUMNS, cols, cols.log_time_ns[-1]))
+            self._wake.set()
+
     def event(self, e: Event, log_time_ns: int) -> None:
         """Queue one event; events are rare and never dropped."""
         if self._error is not None or self._closed:
@@ -688,6 +759,8 @@ class LogWriter:
                 ch, rec, t = popleft()
                 if ch == event_ch:
                     self._put_event(rec, t)
+                elif ch == _COLUMNS:
+                    self._put_columns(rec)
                 else:
                     add(ch, t, dumps(rec, option=_RECORD_OPT), rec.seq & _SEQ_MASK)
                     n_samples += ch == sample_ch
@@ -768,6 +841,25 @@ class LogWriter:
         self._put_event(event, log_time)
         self._dropped_logged = dropped
 
+    def _put_columns(self, cols: Columns) -> None:
+        """A Columns item's records, sample then truth per cycle as `sample`/`truth` queue
+        them, closing chunks on time as a long backlog does."""
+        add, mask = self._mcap.add, _SEQ_MASK
+        sample_ch, truth_ch = self._sample_ch, self._truth_ch
+        samples = cols.rows("sample")
+        truths = cols.rows("truth") if cols.truth is not None else None
+        seq_at, t_at = _SAMPLE_KEYS.index("seq"), _SAMPLE_KEYS.index("t_s")
+        for j, (t, row) in enumerate(zip(cols.log_time_ns, samples, strict=True)):
+            seq = int(row[seq_at]) & mask
+            add(sample_ch, t, _SAMPLE_TEMPLATE % row, seq)
+            if truths is not None:
+                add(truth_ch, t, _TRUTH_TEMPLATE % next(truths), seq)
+            if j % _COLUMN_BATCH == _COLUMN_BATCH - 1:
+                self._samples_written += _COLUMN_BATCH
+                self._last = (float(row[t_at]), t)
+                self._maybe_flush()
+        self._samples_written += cols.n % _COLUMN_BATCH
+
     def _put_event(self, event: Event, log_time: int) -> None:
         """An event on /leveler/event and, for Foxglove's Log panel, on /leveler/log."""
         seq = self._event_seq
@@ -776,4 +868,4 @@ class LogWriter:
         self._event_seq += 1
 
 
-__all__ = ["LogError", "LogWriter"]
+__all__ = ["Columns", "LogError", "LogWriter"]
