@@ -2,13 +2,17 @@
 `leveler modulate --sim`, the synthetic logs of the analysis tests and the benchmarks run.
 
 It is the daemon's own loop, drivers and PID, with a `VirtualClock` instead of the real-time
-one, so every simulated figure is a figure of the code that runs the stand. Virtual time
-outruns any log writer: a run given a writer waits for it every few thousand cycles rather
-than letting its backlog grow (or drop records).
+one, so every simulated figure is a figure of the code that runs the stand. Long runs hand
+the uneventful cycles to `leveler.loop.kernel` (compiled by numba when installed), which
+does the same arithmetic on the same state bit for bit; every other cycle (a new
+disturbance block, a reading the screen flags, a fault, a procedure) is the objects' own.
+Virtual time outruns any log writer: a run given a writer waits for it every few thousand
+cycles rather than letting its backlog grow (or drop records).
 """
 
 from __future__ import annotations
 
+import math
 from array import array
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -16,15 +20,21 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from leveler.drivers.base import Actuator
-from leveler.log.writer import LogWriter
+from leveler.drivers.simulated import SimulatedStand
+from leveler.log.writer import Columns, LogWriter
+from leveler.loop import kernel as kn
 from leveler.loop.clock import VirtualClock
-from leveler.loop.cycle import Loop, Sink
+from leveler.loop.cycle import ENGAGED, IDLE, Loop, Sink
 from leveler.loop.pid import PID
 from leveler.records import Event, Sample, Truth
 from leveler.settings import Config
 from leveler.stand import open_stand
 
 _PACE_EVERY = 20_000  # cycles between waits for a log writer, and its allowed backlog
+# Runs shorter than this stay on the objects: loading numba and the cached kernel (~0.5 s)
+# is not worth it for less than about a minute of 1 kHz loop.
+KERNEL_MIN_CYCLES = 50_000
+KERNELS = ("auto", "numba", "python", "off")
 
 
 class Recorder:
@@ -36,6 +46,12 @@ class Recorder:
         self.applied_v = array("d")
         self.tilt_rad = array("d")
         self.events: list[Event] = []
+
+    def extend(self, out: np.ndarray, n: int) -> None:
+        """Append the first n cycles of a kernel's output."""
+        for dst, row in ((self.t_s, kn.T_S), (self.sensor_m, kn.SENSOR_M),
+                         (self.applied_v, kn.APPLIED_V), (self.tilt_rad, kn.TILT_RAD)):
+            dst.frombytes(out[row, :n].tobytes())
 
     def sample(self, s: Sample, log_time_ns: int) -> None:
         self.t_s.append(s.t_s)
@@ -64,13 +80,18 @@ class VirtualStand:
     """The stand a config describes (backend "sim"), its loop and a virtual clock.
 
     `wrap_actuator` lets a caller put something between the loop and the piezo (the
-    synthetic logs' dither); `sinks` receive every record besides the recorder. Use as a
-    context manager: leaving it puts the actuator in its safe state and closes the stand.
+    synthetic logs' dither); `sinks` receive every record besides the recorder. `kernel`
+    chooses who runs `run`'s uneventful cycles: "auto" the compiled kernel for long runs
+    when numba is installed, "numba" or "python" (its interpreted form, for tests) always,
+    "off" never. Use as a context manager: leaving it puts the actuator in its safe state
+    and closes the stand.
     """
 
     def __init__(self, cfg: Config, seed: int, *, sinks: Sequence[Sink] = (),
                  wrap_actuator: Callable[[Actuator], Actuator] | None = None,
-                 start_wall_ns: int | None = None) -> None:
+                 start_wall_ns: int | None = None, kernel: str = "auto") -> None:
+        if kernel not in KERNELS:
+            raise ValueError(f"kernel must be one of {', '.join(KERNELS)}, not {kernel!r}")
         self.dt_s = 1.0 / cfg.loop.rate_hz
         self.stand = open_stand(cfg, seed)
         self.stand.connect()
@@ -81,6 +102,8 @@ class VirtualStand:
                          self.dt_s, [self.recorder, *sinks], self.stand.truth, policy=cfg.loop)
         self.clock = VirtualClock(self.dt_s, start_wall_ns)
         self.t_s = self.clock.tick()
+        self._kernel_mode = kernel
+        self._kernel: _Kernel | None = None
 
     def __enter__(self) -> VirtualStand:
         return self
@@ -106,15 +129,41 @@ class VirtualStand:
             progress: Callable[[float], None] | None = None) -> None:
         """`cycles` steps, pacing to `writer` and reporting the fraction done to `progress`."""
         every = max(min(cycles // 200, _PACE_EVERY), 1)
-        for k in range(1, cycles + 1):
-            self.step()
-            if k % every == 0:
+        fast = self._fast(cycles, every)
+        k, mark = 0, every
+        while k < cycles:
+            n = min(cycles, mark) - k
+            if fast is None:
+                for _ in range(n):
+                    self.step()
+            else:
+                fast.advance(n)
+            k += n
+            if k == mark:
+                mark += every
                 if writer is not None:
                     writer.wait_drained(max_backlog=_PACE_EVERY)
                 if progress is not None:
                     progress(k / cycles)
         if progress is not None:
             progress(1.0)
+
+    def _fast(self, cycles: int, chunk: int) -> _Kernel | None:
+        """The kernel for a run of `cycles`, or None where only the objects can run it."""
+        mode = self._kernel_mode
+        if mode == "off" or (mode == "auto" and cycles < KERNEL_MIN_CYCLES):
+            return None
+        fn = kn.cycles if mode == "python" else kn.compiled()
+        if fn is None:
+            if mode == "numba":
+                raise RuntimeError("kernel='numba' needs numba: pip install lab-leveler[fast]")
+            return None
+        why = _Kernel.unsupported(self)
+        if why:
+            return None
+        if self._kernel is None or self._kernel.fn is not fn or len(self._kernel.out[0]) < chunk:
+            self._kernel = _Kernel(self, fn, chunk)
+        return self._kernel
 
     def recorded(self, first: int = 0) -> Run:
         """The recorded series from sample `first` on."""
@@ -123,14 +172,184 @@ class VirtualStand:
                                                          r.tilt_rad)), r.events)
 
 
+class _Kernel:
+    """`leveler.loop.kernel.cycles` run on a VirtualStand's objects: their state out to
+    arrays, the uneventful cycles in the kernel, the state back, the records to the sinks;
+    the cycle that stopped it run by the objects themselves."""
+
+    def __init__(self, vs: VirtualStand, fn: Callable[..., tuple[int, int]],
+                 chunk: int) -> None:
+        self.vs = vs
+        self.fn = fn
+        self.sim = vs.stand.sensor
+        assert isinstance(self.sim, SimulatedStand)
+        self.s = np.zeros(kn.N_STATE)
+        self.c = np.zeros(kn.N_COUNT, dtype=np.int64)
+        self.out = np.zeros((kn.N_OUT, chunk))
+        self.out_i = np.zeros((2, chunk), dtype=np.int64)
+        self._block: object = None
+        self._arrays: tuple[np.ndarray, ...] = ()
+        self.cycles = 0  # run by the kernel (the rest of a run was the objects')
+
+    @staticmethod
+    def unsupported(vs: VirtualStand) -> str:
+        """Why the kernel cannot run this stand's cycles ('' when it can): it knows the plain
+        simulated stand, one conversion a cycle, and no effect stepped sample by sample."""
+        sim = vs.stand.sensor
+        if not isinstance(sim, SimulatedStand) or vs.loop.actuator is not sim:
+            return "not the plain simulated stand (another driver, or a wrapped actuator)"
+        if sim._faults or math.isfinite(sim._hang_at_s) or math.isfinite(sim._fail_at_s):
+            return "fault injection"
+        plant = sim.plant
+        if plant.samples_per_cycle != 1:
+            return "oversampling ADC"
+        if plant._actuator_fx or plant._sensor_fx or plant._resonances:
+            return "an actuator, sensor or resonance effect"
+        if plant.dt_s != vs.dt_s:
+            return "plant and loop steps differ"
+        return ""
+
+    # The state's names here are the objects' own, private ones: this class is the one place
+    # that maps them to the kernel's arrays, and tests hold the two runs to each other.
+
+    def _ready(self) -> bool:
+        """Whether the loop is in a state the kernel knows (else the objects run a cycle)."""
+        loop = self.vs.loop
+        return (loop.state in (IDLE, ENGAGED) and loop.wave is None
+                and not (loop._in_a_row or loop._unreported or loop._bad_in_a_row)
+                and (loop.state == IDLE or loop.pid._prev is not None)
+                and not self.sim._unplugged)
+
+    def advance(self, n: int) -> None:
+        """Run n cycles, the kernel's where it can and the objects' where it cannot."""
+        vs = self.vs
+        done = 0
+        while done < n:
+            if not self._ready():
+                vs.step()
+                done += 1
+                continue
+            self._export()
+            m, why = self.fn(self.s, self.c, self._constants(), *self._block_arrays(),
+                             self.out, self.out_i, n - done)
+            self._import(m)
+            done += m
+            self.cycles += m
+            if why == kn.BEFORE:
+                vs.step()
+                done += 1
+            elif why == kn.AFTER_STEP:
+                vs.cycle()  # the plant has stepped: the read measures without stepping again
+                done += 1
+
+    def _block_arrays(self) -> tuple[np.ndarray, ...]:
+        b = self.sim.plant._block
+        if b is not self._block:
+            self._block = b
+            self._arrays = (b.arrays["thermal_tilt_rad"], b.arrays["cooler_tilt_rad"],
+                            b.arrays["effect_tilt_rad"], b.arrays["noise_m"],
+                            b.arrays["drift_m"], b.arrays["temperature_k"])
+        return self._arrays
+
+    def _constants(self) -> np.ndarray:
+        vs, loop, plant = self.vs, self.vs.loop, self.sim.plant
+        pend, pid, pol = plant.pendulum, loop.pid, loop.policy
+        k = np.zeros(kn.N_CONST)
+        for i, v in ((kn.K_TILT_PER_V, plant._tilt_per_v), (kn.K_V_REF, plant._v_ref),
+                     (kn.K_V_MIN, plant._v_min), (kn.K_V_MAX, plant._v_max),
+                     (kn.K_MAX_DV, plant._max_dv), (kn.K_ARM, plant._arm),
+                     (kn.K_GAIN, plant._gain), (kn.K_OFFSET, plant._offset),
+                     (kn.K_ADC_MIN, plant._adc_min), (kn.K_LSB, plant._lsb),
+                     (kn.K_TOP, plant._top), (kn.K_LINEAR, pend._linear),
+                     (kn.K_A11, pend._a11), (kn.K_A12, pend._a12), (kn.K_A21, pend._a21),
+                     (kn.K_A22, pend._a22), (kn.K_B1, pend._b1), (kn.K_B2, pend._b2),
+                     (kn.K_C_PER_J, pend._c_per_j), (kn.K_J, pend._j), (kn.K_C, pend._c),
+                     (kn.K_K, pend._k), (kn.K_MGL, pend._mgl), (kn.K_SUBSTEPS, pend._substeps),
+                     (kn.K_PLANT_DT, plant.dt_s), (kn.K_OFFSET_TILT, plant._offset_tilt),
+                     (kn.K_KP, pid._kp), (kn.K_KI, pid._ki), (kn.K_KD, pid._kd),
+                     (kn.K_LO, pid._lo), (kn.K_HI, pid._hi), (kn.K_SLEW, pid._slew),
+                     (kn.K_TAU, pid._tau), (kn.K_RAMP, pid._ramp), (kn.K_TARGET, pid._target),
+                     (kn.K_TT, pid._tt), (kn.K_DT, loop.dt_s), (kn.K_PERIOD, vs.clock.period_s),
+                     (kn.K_STUCK_AFTER, pol.stuck_after_samples),
+                     (kn.K_MAX_STEP_M, pol.max_step_m), (kn.K_SPIKE_MAX, pol.spike_reject_max)):
+            k[i] = v
+        return k
+
+    def _export(self) -> None:
+        vs, plant = self.vs, self.sim.plant
+        pend, pid, loop = plant.pendulum, vs.loop.pid, vs.loop
+        self.s[:] = (plant.v_applied, plant.v_target, plant.v_effective, plant._lag_v,
+                     pend.theta, pend.omega, pend._phi, pid._sp, pid._out, pid._u, pid._i,
+                     pid._err, pid._df, math.nan if pid._prev is None else pid._prev,
+                     loop.held_v, loop._last_value_m, loop._last_good_m)
+        self.c[:] = (plant.n, plant._i, loop.seq, vs.clock._n, loop._same_in_a_row,
+                     loop._spikes_in_a_row, loop.state == ENGAGED)
+
+    def _import(self, m: int) -> None:
+        vs, plant = self.vs, self.sim.plant
+        pend, pid, loop = plant.pendulum, vs.loop.pid, vs.loop
+        s = self.s.tolist()
+        c = self.c.tolist()
+        (plant.v_applied, plant.v_target, plant.v_effective, plant._lag_v, pend.theta,
+         pend.omega, pend._phi) = s[kn.V_APPLIED:kn.SP]
+        if loop.state == ENGAGED:
+            pid._sp, pid._out, pid._u, pid._i, pid._err, pid._df, pid._prev = s[kn.SP:kn.HELD_V]
+        loop.held_v, loop._last_value_m, loop._last_good_m = s[kn.HELD_V:]
+        plant.n, plant._i, loop.seq, vs.clock._n = c[kn.N], c[kn.BLOCK_I], c[kn.SEQ], c[kn.TICK]
+        loop._same_in_a_row, loop._spikes_in_a_row = c[kn.SAME], c[kn.SPIKES]
+        vs.t_s = vs.clock._n * vs.clock.period_s
+        if m:
+            self._emit(m)
+
+    def _emit(self, m: int) -> None:
+        """The records of m kernel cycles: to the recorder and log writers in bulk, to any
+        other sink one by one, and the last sample to the loop."""
+        vs, loop = self.vs, self.vs.loop
+        vs.recorder.extend(self.out, m)
+        seq0, state = loop.seq - m, loop.state
+        out, out_i = self.out[:, :m].copy(), self.out_i[:, :m].copy()
+        wall = (vs.clock.start_wall_ns + np.rint(out[kn.T_S] * 1e9).astype(np.int64)).tolist()
+        sample = {"seq": np.arange(seq0, seq0 + m), "t_s": out[kn.T_S],
+                  "raw_counts": out_i[kn.RAW_COUNTS], "sensor_m": out[kn.SENSOR_M],
+                  "status": 0, "setpoint_m": out[kn.SETPOINT_M],
+                  "error_m": out[kn.SETPOINT_M] - out[kn.SENSOR_M], "p_v": out[kn.P_V],
+                  "i_v": out[kn.I_V], "d_v": out[kn.D_V], "command_v": out[kn.COMMAND_V],
+                  "applied_v": out[kn.APPLIED_V], "saturated": out_i[kn.SATURATED] != 0,
+                  "state": state}
+        truth = {"seq": sample["seq"], "t_s": out[kn.T_S], "tilt_rad": out[kn.TILT_RAD],
+                 "thermal_tilt_rad": out[kn.THERMAL_RAD], "cooler_tilt_rad": out[kn.COOLER_RAD],
+                 "piezo_tilt_rad": out[kn.PIEZO_RAD], "pendulum_rad": out[kn.PENDULUM_RAD],
+                 "temperature_k": out[kn.TEMPERATURE_K], "sensor_drift_m": out[kn.DRIFT_M]}
+        others = []
+        for sink in loop.sinks:
+            if isinstance(sink, LogWriter):
+                sink.columns(Columns(sample, truth, wall))
+            elif sink is not vs.recorder:
+                others.append(sink)
+        first = 0 if others else m - 1  # without such sinks only the last is needed
+        rows = (v[first:].tolist() if isinstance(v, np.ndarray) else [v] * (m - first)
+                for v in sample.values())
+        samples = [Sample(*r) for r in zip(*rows, strict=True)]
+        if others:
+            truths = [Truth(*r) for r in zip(*(v.tolist() for v in truth.values()),
+                                              strict=True)]
+            for s, t, w in zip(samples, truths, wall, strict=True):
+                for sink in others:
+                    sink.sample(s, w)
+                    sink.truth(t, w)
+        loop.last = samples[-1]
+        loop._wall_ns = wall[-1]
+
+
 def run_virtual(cfg: Config, duration_s: float, seed: int, *, engaged: bool,
                 writer: LogWriter | None = None,
                 progress: Callable[[float], None] | None = None,
-                start_wall_ns: int | None = None) -> Run:
+                start_wall_ns: int | None = None, kernel: str = "auto") -> Run:
     """`leveler sim`'s run: duration_s of virtual time, closed loop or open (the piezo at
-    its safe voltage), with every record to `writer` if given."""
+    its safe voltage), with every record to `writer` if given (`kernel`: VirtualStand's)."""
     sinks = [] if writer is None else [writer]
-    with VirtualStand(cfg, seed, sinks=sinks, start_wall_ns=start_wall_ns) as vs:
+    with VirtualStand(cfg, seed, sinks=sinks, start_wall_ns=start_wall_ns,
+                      kernel=kernel) as vs:
         vs.loop.emit("start", "sim", vs.t_s, engaged=engaged, seed=seed)
         vs.cycle()
         if engaged:

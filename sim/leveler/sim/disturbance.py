@@ -22,7 +22,8 @@ DAY_S = 86400.0
 
 @dataclass(slots=True)
 class Block:
-    """Disturbance values for samples [start, start + len) as plain lists (fast indexing)."""
+    """Disturbance values for samples [start, start + len) as plain lists (fast indexing),
+    and the same as numpy arrays by field name (for leveler.loop.kernel)."""
 
     start: int
     temperature_k: list[float]
@@ -31,6 +32,7 @@ class Block:
     noise_m: list[float]
     drift_m: list[float]
     effect_tilt_rad: list[float]
+    arrays: dict[str, np.ndarray]
 
 
 class Disturbances:
@@ -80,8 +82,10 @@ class Disturbances:
             extra += fx.tilt(sig, state)  # type: ignore[attr-defined]
 
         self._start += n
-        return Block(start, temp.tolist(), thermal_tilt.tolist(), cooler.tolist(),
-                     noise.tolist(), drift.tolist(), extra.tolist())
+        arrays = {"temperature_k": temp, "thermal_tilt_rad": thermal_tilt,
+                  "cooler_tilt_rad": cooler, "noise_m": noise, "drift_m": drift,
+                  "effect_tilt_rad": extra}
+        return Block(start, *(a.tolist() for a in arrays.values()), arrays)
 
     def _lag(self, temp: np.ndarray) -> np.ndarray:
         """First-order thermal lag, exact for a signal held over each sample."""

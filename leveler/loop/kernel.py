@@ -1,0 +1,240 @@
+"""The virtual loop's common cycle as one function over arrays, compiled when numba is here.
+
+A simulated day is 864,000 cycles of the same arithmetic: step the plant, read it through
+the ADC, update the PID, command the piezo, record. Run as objects (drivers, `Loop`, `PID`,
+`Plant`) that is ~100k cycles/s; `cycles` does exactly the same floating-point operations,
+in the same order, on a state vector, so numba can compile it to ~100x that (issue 21).
+
+It covers only the cycle where nothing happens: a reading that the screen passes, the loop
+idle or engaged, no fault. Anything else (a railed or suspicious reading, the end of a
+disturbance block, an overflowing PID) stops it *before* changing the state that cycle's
+decision needs, and `leveler.virtual` lets the daemon's own code run that cycle. So the
+objects stay the reference: tests hold `cycles` (compiled and interpreted) to them bit for
+bit, and the real-time daemon never runs this module.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+# The float state: plant, pendulum, PID, loop.
+(V_APPLIED, V_TARGET, V_EFFECTIVE, LAG_V, THETA, OMEGA, PHI, SP, OUTPUT, UNCLAMPED, INTEGRAL,
+ ERR, DF, PREV, HELD_V, LAST_VALUE_M, LAST_GOOD_M) = range(17)
+N_STATE = 17
+# The integer state: plant step, index in the disturbance block, sample seq, clock tick,
+# the screen's run counters, and the loop state (IDLE or ENGAGED).
+(N, BLOCK_I, SEQ, TICK, SAME, SPIKES, ENGAGED) = range(7)
+N_COUNT = 7
+# Constants.
+(K_TILT_PER_V, K_V_REF, K_V_MIN, K_V_MAX, K_MAX_DV, K_ARM, K_GAIN, K_OFFSET, K_ADC_MIN, K_LSB,
+ K_TOP, K_LINEAR, K_A11, K_A12, K_A21, K_A22, K_B1, K_B2, K_C_PER_J, K_J, K_C, K_K, K_MGL,
+ K_SUBSTEPS, K_PLANT_DT, K_OFFSET_TILT, K_KP, K_KI, K_KD, K_LO, K_HI, K_SLEW, K_TAU, K_RAMP,
+ K_TARGET, K_TT, K_DT, K_PERIOD, K_STUCK_AFTER, K_MAX_STEP_M, K_SPIKE_MAX) = range(41)
+N_CONST = 41
+# Rows of the float output, one column per cycle.
+(T_S, SENSOR_M, SETPOINT_M, P_V, I_V, D_V, COMMAND_V, APPLIED_V, TILT_RAD, THERMAL_RAD,
+ COOLER_RAD, PIEZO_RAD, PENDULUM_RAD, TEMPERATURE_K, DRIFT_M) = range(15)
+N_OUT = 15
+# Rows of the integer output.
+RAW_COUNTS, SATURATED = range(2)
+# Why `cycles` returned.
+DONE = 0  # `limit` cycles run
+BEFORE = 1  # the next cycle needs the objects from its start (a new block, an odd step)
+AFTER_STEP = 2  # the clock and plant have stepped; the reading needs the daemon's screen
+
+_SAMPLE_TRACKING_GAIN = 1.0 / (3.0 + 1.0)  # as leveler.loop.pid
+
+
+def cycles(s: np.ndarray, c: np.ndarray, k: np.ndarray, thermal: np.ndarray,
+           cooler: np.ndarray, effect: np.ndarray, noise: np.ndarray, drift: np.ndarray,
+           temperature: np.ndarray, out: np.ndarray, out_i: np.ndarray,
+           limit: int) -> tuple[int, int]:
+    """Run up to `limit` cycles from state (s, c); returns (cycles completed, why it stopped).
+
+    Each completed cycle fills column j of `out`/`out_i`. The statements mirror
+    `SimulatedStand.read`, `Plant.step`/`measure`, `PendulumModel.step`, `Loop._screen`,
+    `PID.update`, `Plant.command` and `Plant.truth` one for one; change them together."""
+    blen = len(noise)
+    inf = math.inf
+    tilt_per_v, v_ref = k[K_TILT_PER_V], k[K_V_REF]
+    v_min, v_max, max_dv = k[K_V_MIN], k[K_V_MAX], k[K_MAX_DV]
+    offset_tilt = k[K_OFFSET_TILT]
+    dt = k[K_DT]
+    done = 0
+    while done < limit:
+        i = c[BLOCK_I]
+        tick = c[TICK] + 1
+        t_s = tick * k[K_PERIOD]
+        if i + 1 >= blen or np.rint(t_s / k[K_PLANT_DT]) != c[N] + 1:
+            return done, BEFORE
+        # -- Plant.step: the piezo slews toward its target over the step
+        before = s[V_APPLIED]
+        dv = s[V_TARGET] - before
+        if dv > max_dv:
+            dv = max_dv
+        elif dv < -max_dv:
+            dv = -max_dv
+        v = before + dv
+        s[V_APPLIED] = v
+        dv = v - before
+        lag = dv * abs(dv) / (2.0 * max_dv)
+        s[LAG_V] = lag
+        s[V_EFFECTIVE] = v
+        phi = (tilt_per_v * (v - v_ref) + thermal[i] + cooler[i] + effect[i]
+               + offset_tilt) - tilt_per_v * lag
+        # -- PendulumModel.step
+        dphi = phi - s[PHI]
+        s[PHI] = phi
+        th = s[THETA] - dphi
+        om = s[OMEGA] + k[K_C_PER_J] * dphi
+        if k[K_LINEAR] != 0.0:
+            s[THETA] = k[K_A11] * th + k[K_A12] * om + k[K_B1] * phi
+            s[OMEGA] = k[K_A21] * th + k[K_A22] * om + k[K_B2] * phi
+        else:
+            substeps = int(k[K_SUBSTEPS])
+            h = k[K_PLANT_DT] / substeps
+            jj, cc, kk, mgl = k[K_J], k[K_C], k[K_K], k[K_MGL]
+            for _ in range(substeps):
+                k1t = om
+                k1o = (mgl * math.sin(th + phi) - kk * th - cc * om) / jj
+                k2t = om + 0.5 * h * k1o
+                k2o = (mgl * math.sin(th + 0.5 * h * k1t + phi) - kk * (th + 0.5 * h * k1t)
+                       - cc * (om + 0.5 * h * k1o)) / jj
+                k3t = om + 0.5 * h * k2o
+                k3o = (mgl * math.sin(th + 0.5 * h * k2t + phi) - kk * (th + 0.5 * h * k2t)
+                       - cc * (om + 0.5 * h * k2o)) / jj
+                k4t = om + h * k3o
+                k4o = (mgl * math.sin(th + h * k3t + phi) - kk * (th + h * k3t)
+                       - cc * (om + h * k3o)) / jj
+                th += h / 6.0 * (k1t + 2 * k2t + 2 * k3t + k4t)
+                om += h / 6.0 * (k1o + 2 * k2o + 2 * k3o + k4o)
+            s[THETA], s[OMEGA] = th, om
+        c[N] += 1
+        i += 1
+        c[BLOCK_I] = i
+        c[TICK] = tick
+        # -- Plant.measure: one conversion
+        x = k[K_ARM] * s[THETA] + 0.0 + drift[i] + noise[i]
+        counts = math.floor((k[K_GAIN] * x + k[K_OFFSET] - k[K_ADC_MIN]) / k[K_LSB] + 0.5)
+        if counts <= 0 or counts >= k[K_TOP]:
+            return done, AFTER_STEP
+        value = (counts * k[K_LSB] + k[K_ADC_MIN] - k[K_OFFSET]) / k[K_GAIN]
+        # -- Loop._screen of an OK reading: anything it would flag goes to the loop
+        same = c[SAME] + 1 if value == s[LAST_VALUE_M] else 0
+        stuck_after = k[K_STUCK_AFTER]
+        if stuck_after != 0.0 and same + 1 >= stuck_after:
+            return done, AFTER_STEP
+        max_step = k[K_MAX_STEP_M]
+        if (max_step != 0.0 and abs(value - s[LAST_GOOD_M]) > max_step
+                and c[SPIKES] < k[K_SPIKE_MAX]):
+            return done, AFTER_STEP
+        # -- PID.update (engaged) or the held voltage (idle)
+        sp = s[SP]
+        target = k[K_TARGET]
+        if c[ENGAGED] != 0:
+            if sp != target:
+                step = k[K_RAMP] * dt
+                if target - sp > step:
+                    sp += step
+                elif sp - target > step:
+                    sp -= step
+                else:
+                    sp = target
+            error = sp - value
+            p = k[K_KP] * error
+            tau = k[K_TAU]
+            df = (tau * s[DF] + (value - s[PREV])) / (tau + dt)
+            d = -k[K_KD] * df
+            integral = s[INTEGRAL]
+            u = p + integral + d
+            lo, hi = k[K_LO], k[K_HI]
+            cmd = lo if u < lo else hi if u > hi else u
+            last = s[OUTPUT]
+            step = k[K_SLEW] * dt
+            if cmd > last + step:
+                cmd = last + step
+            elif cmd < last - step:
+                cmd = last - step
+            tt = k[K_TT]
+            k_track = dt / (tt + dt) if tt > 0.0 else _SAMPLE_TRACKING_GAIN
+            delta = k[K_KI] * error * dt + (cmd - u) * k_track
+            if (delta > 0.0 and cmd >= hi) or (delta < 0.0 and cmd <= lo):
+                delta = 0.0
+            i_next = integral + delta
+            if not -inf < i_next + cmd < inf:
+                return done, AFTER_STEP  # the PID raises; the loop faults
+            s[SP] = sp
+            s[INTEGRAL] = i_next
+            s[OUTPUT] = cmd
+            s[UNCLAMPED] = u
+            s[ERR] = error
+            s[DF] = df
+            s[PREV] = value
+            setpoint = sp
+            saturated = cmd != u
+        else:
+            p = integral = d = 0.0
+            cmd = s[HELD_V]
+            setpoint = target
+            saturated = False
+        c[SAME] = same
+        c[SPIKES] = 0
+        s[LAST_VALUE_M] = value
+        s[LAST_GOOD_M] = value
+        # -- Plant.command: clamp to the piezo's range; the next step slews toward it
+        vt = cmd if not v_min > cmd else v_min
+        vt = vt if not v_max < vt else v_max
+        s[V_TARGET] = vt
+        dv = vt - s[V_APPLIED]
+        if dv > max_dv:
+            dv = max_dv
+        elif dv < -max_dv:
+            dv = -max_dv
+        applied = s[V_APPLIED] + dv
+        s[HELD_V] = cmd
+        # -- the records
+        piezo = tilt_per_v * (s[V_EFFECTIVE] - v_ref)
+        out[T_S, done] = t_s
+        out[SENSOR_M, done] = value
+        out[SETPOINT_M, done] = setpoint
+        out[P_V, done] = p
+        out[I_V, done] = integral
+        out[D_V, done] = d
+        out[COMMAND_V, done] = cmd
+        out[APPLIED_V, done] = applied
+        out[TILT_RAD, done] = piezo + thermal[i] + cooler[i] + effect[i] + offset_tilt
+        out[THERMAL_RAD, done] = thermal[i]
+        out[COOLER_RAD, done] = cooler[i]
+        out[PIEZO_RAD, done] = piezo
+        out[PENDULUM_RAD, done] = s[THETA]
+        out[TEMPERATURE_K, done] = temperature[i]
+        out[DRIFT_M, done] = drift[i]
+        out_i[RAW_COUNTS, done] = counts
+        out_i[SATURATED, done] = saturated
+        c[SEQ] += 1
+        done += 1
+    return done, DONE
+
+
+def compiled() -> Callable[..., tuple[int, int]] | None:
+    """`cycles` compiled by numba (cached on disk after the first compile), or None when
+    numba is not installed (`pip install lab-leveler[fast]`)."""
+    global _compiled
+    if _compiled is None:
+        try:
+            import numba
+        except ImportError:
+            _compiled = False
+        else:
+            try:
+                _compiled = numba.njit(cache=True, nogil=True)(cycles)
+            except RuntimeError:  # no writable cache directory: compile in each process
+                _compiled = numba.njit(nogil=True)(cycles)
+    return _compiled or None
+
+
+_compiled: Any = None
