@@ -189,6 +189,7 @@ class _Kernel:
         self.out_i = np.zeros((2, chunk), dtype=np.int64)
         self._block: object = None
         self._arrays: tuple[np.ndarray, ...] = ()
+        self.res = np.zeros((kn.N_RES, 0))
         self.cycles = 0  # run by the kernel (the rest of a run was the objects')
 
     @staticmethod
@@ -231,7 +232,7 @@ class _Kernel:
                 continue
             self._export()
             m, why = self.fn(self.s, self.c, self._constants(), *self._block_arrays(),
-                             self.out, self.out_i, n - done)
+                             self.res, self.out, self.out_i, n - done)
             self._import(m)
             done += m
             self.cycles += m
@@ -281,7 +282,15 @@ class _Kernel:
         self.s[:] = (plant.v_applied, plant.v_target, plant.v_effective, plant._lag_v,
                      pend.theta, pend.omega, pend._phi, pid._sp, pid._out, pid._u, pid._i,
                      pid._err, pid._df, math.nan if pid._prev is None else pid._prev,
-                     loop.held_v, loop._last_value_m, loop._last_good_m)
+                     pid._r, pid._res_wait_s, loop.held_v, loop._last_value_m,
+                     loop._last_good_m)
+        res = pid._res
+        if res is None:
+            self.res = np.zeros((kn.N_RES, 0))
+        else:
+            rot_c, rot_s = res.rotation(loop.dt_s)
+            self.res = np.array([rot_c, rot_s, res._cos_out, res._sin_out, res._re, res._im],
+                                dtype=float).reshape(kn.N_RES, -1)
         self.c[:] = (plant.n, plant._i, loop.seq, vs.clock._n, loop._same_in_a_row,
                      loop._spikes_in_a_row, loop.state == ENGAGED)
 
@@ -293,7 +302,11 @@ class _Kernel:
         (plant.v_applied, plant.v_target, plant.v_effective, plant._lag_v, pend.theta,
          pend.omega, pend._phi) = s[kn.V_APPLIED:kn.SP]
         if loop.state == ENGAGED:
-            pid._sp, pid._out, pid._u, pid._i, pid._err, pid._df, pid._prev = s[kn.SP:kn.HELD_V]
+            (pid._sp, pid._out, pid._u, pid._i, pid._err, pid._df, pid._prev, pid._r,
+             pid._res_wait_s) = s[kn.SP:kn.HELD_V]
+            if pid._res is not None:
+                pid._res._re = self.res[kn.RES_RE].tolist()
+                pid._res._im = self.res[kn.RES_IM].tolist()
         loop.held_v, loop._last_value_m, loop._last_good_m = s[kn.HELD_V:]
         plant.n, plant._i, loop.seq, vs.clock._n = c[kn.N], c[kn.BLOCK_I], c[kn.SEQ], c[kn.TICK]
         loop._same_in_a_row, loop._spikes_in_a_row = c[kn.SAME], c[kn.SPIKES]

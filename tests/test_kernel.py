@@ -64,10 +64,21 @@ def _script(vs: VirtualStand, n: int, idle: bool) -> None:
     vs.run(n // 5)
 
 
+def _resonant() -> Config:
+    """Resonant terms at the cooler's first three harmonics (as `tune --suggest --model`
+    designs them for the default stand)."""
+    cfg = _cfg()
+    return dataclasses.replace(cfg, controller=dataclasses.replace(
+        cfg.controller, periodic_period_s=300.0,
+        periodic_gains_v_per_m_s=(1.32e7, 6.6e6, 4.4e6),
+        periodic_phases_rad=(-1.55915, -1.54751, -1.53587)))
+
+
 CASES = {
     "default closed loop": (lambda: _cfg(), 30_000),
     "non-linear pendulum": (lambda: _cfg(pendulum={"model": "nonlinear"}), 12_000),
     "railing, spiking, stuck": (_noisy_screened, 30_000),
+    "resonant terms": (_resonant, 30_000),
     "slow setpoint ramp, slew-limited": (lambda: dataclasses.replace(
         _cfg(), controller=dataclasses.replace(_cfg().controller, setpoint_ramp_m_per_s=1e-11,
                                                slew_v_per_s=0.05)), 20_000),
@@ -97,6 +108,9 @@ def test_kernel_matches_the_objects_bit_for_bit(case: str, mode: str) -> None:
     assert got.loop.last == ref.loop.last
     assert got.loop.state == ref.loop.state
     assert got.loop.pid._i == ref.loop.pid._i and got.loop.pid._df == ref.loop.pid._df
+    if ref.loop.pid._res is not None:
+        assert got.loop.pid._res._re == ref.loop.pid._res._re
+        assert any(ref.loop.pid._res._re), "the resonant terms never ran"
     assert got.stand.sensor.plant.pendulum.theta == ref.stand.sensor.plant.pendulum.theta
     cycles = len(a.t_s) - 1
     assert kernel_cycles > 0.5 * cycles, "the kernel ran too little of the run to be tested"

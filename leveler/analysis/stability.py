@@ -10,20 +10,26 @@ python-control's `feedback(controller * plant).poles()` over random gains and st
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
+from leveler.loop.resonant import PeriodicTerms
 from leveler.sim.params import PlantParams
 from leveler.sim.pendulum import discrete_matrices
 
 
 def closed_loop_matrix(params: PlantParams, rate_hz: float, kp: float, ki: float, kd: float,
-                       d_filter_tau_s: float) -> np.ndarray:
+                       d_filter_tau_s: float, terms: PeriodicTerms | None = None) -> np.ndarray:
     """x_(n+1) = M x_n for the plant's state, then the integrator's and the derivative
-    filter's (each only with its gain non-zero, as suggest.controller_tf leaves them out).
+    filter's (each only with its gain non-zero, as suggest.controller_tf leaves them out),
+    then two per resonant term.
 
     Plant: x' = A x + b u [V], reading y = x[0] [m] (strictly proper). Controller on e = -y:
     P: kp e; I: ki dt s with s' = s + e; D: kd (z - 1) / ((tau + dt) z - tau) on e, i.e.
-    g e + g (alpha - 1) w with w' = alpha w + e, g = kd / (tau + dt), alpha = tau / (tau + dt).
+    g e + g (alpha - 1) w with w' = alpha w + e, g = kd / (tau + dt), alpha = tau / (tau + dt);
+    resonant term h (leveler.loop.resonant): (re, im)' = r rot(w_h dt) (re, im) + (dt e, 0),
+    adding k_h (cos(phase_h) re - sin(phase_h) im) to u (linear: the rail freeze ignored).
     """
     pe, dt = params.pendulum, 1.0 / rate_hz
     a, b = discrete_matrices(pe, dt)
@@ -36,29 +42,45 @@ def closed_loop_matrix(params: PlantParams, rate_hz: float, kp: float, ki: float
         blocks.append((ki * dt, 1.0))
     if kd:
         blocks.append((g * (alpha - 1.0), alpha))
-    n = 3 + len(blocks)
+    harmonics = [] if terms is None else list(enumerate(
+        zip(terms.gains_v_per_m_s, terms.phases_rad, strict=True), 1))
+    n = 3 + len(blocks) + 2 * len(harmonics)
     m = np.zeros((n, n))
     m[:3, :3] = a - np.outer(bv, (kp + g) * c)
     for j, (gain, pole) in enumerate(blocks, start=3):
         m[:3, j] = bv * gain  # the block's state drives u
         m[j, :3] = -c         # fed by e = -y
         m[j, j] = pole
+    for i, (h, (k, phase)) in enumerate(harmonics):
+        assert terms is not None
+        j = 3 + len(blocks) + 2 * i
+        theta = 2.0 * math.pi * h / terms.period_s * dt
+        m[:3, j] = bv * k * math.cos(phase)
+        m[:3, j + 1] = -bv * k * math.sin(phase)
+        m[j, :3] = -dt * c
+        m[j:j + 2, j:j + 2] = terms.radius * np.array([[math.cos(theta), -math.sin(theta)],
+                                                       [math.sin(theta), math.cos(theta)]])
     return m
 
 
 def predicted_instability(params: PlantParams, rate_hz: float, kp: float, ki: float,
-                          kd: float, d_filter_tau_s: float) -> str | None:
+                          kd: float, d_filter_tau_s: float,
+                          terms: PeriodicTerms | None = None) -> str | None:
     """Why the plant model says these gains make an unstable loop, or None if they do not.
 
     Only the closed-loop poles (microseconds): `tune` and a reload ask this before they
     apply new gains, so a dropped derivative or a typo cannot set the stand ringing."""
-    if not (kp or ki or kd):  # no feedback: the open plant, which the config says is stable
+    if not (kp or ki or kd or terms):  # no feedback: the open plant, stable as configured
         return None
-    poles = np.linalg.eigvals(closed_loop_matrix(params, rate_hz, kp, ki, kd, d_filter_tau_s))
+    poles = np.linalg.eigvals(closed_loop_matrix(params, rate_hz, kp, ki, kd, d_filter_tau_s,
+                                                 terms))
     worst = poles[np.argmax(np.abs(poles))]
     if abs(worst) < 1.0:
         return None
     f_hz = abs(np.angle(worst)) * rate_hz / (2 * np.pi)
     return (f"the plant model predicts an unstable loop at {rate_hz:g} Hz: a closed-loop pole "
             f"at |z| = {abs(worst):.4g} ({f_hz:.3g} Hz) with kp {kp:g} V/m, ki {ki:g} V/(m s), "
-            f"kd {kd:g} V s/m, d_filter_tau_s {d_filter_tau_s:g} s")
+            f"kd {kd:g} V s/m, d_filter_tau_s {d_filter_tau_s:g} s"
+            + ("" if terms is None else
+               f", and {len(terms.gains_v_per_m_s)} resonant terms at the harmonics of "
+               f"{terms.period_s:g} s"))

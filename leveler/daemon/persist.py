@@ -26,7 +26,7 @@ def _parse(text: str) -> tomlkit.TOMLDocument:
         raise ConfigError(f"the config is not valid TOML: {exc}") from None
 
 
-def set_keys(text: str, section: str, values: dict[str, float]) -> str:
+def set_keys(text: str, section: str, values: dict[str, float | tuple[float, ...]]) -> str:
     """`text` with the keys of `section` (dotted for nested tables, e.g. "plant.pendulum")
     set to `values`: replaced where they are, added to the section if absent, the section
     added at the end if the file has none."""
@@ -39,7 +39,7 @@ def set_keys(text: str, section: str, values: dict[str, float]) -> str:
             table[part] = tomlkit.table(is_super_table=depth < len(parts) - 1)
         table = table[part]
     for key, value in values.items():
-        table[key] = float(value)
+        table[key] = [float(v) for v in value] if isinstance(value, tuple | list) else float(value)
     return tomlkit.dumps(doc)
 
 

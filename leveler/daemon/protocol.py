@@ -40,6 +40,11 @@ TUNE_KEYS: dict[str, float | None] = {
 }
 #: tune arguments that may be infinite (the string "inf" on the wire), as in the config
 TUNE_INF_OK = ("slew_v_per_s",)
+#: tune arguments of the resonant terms (leveler.loop.resonant): the period and radius are
+#: numbers, the gains and phases lists of them (at most MAX_HARMONICS each)
+PERIODIC_KEYS = ("periodic_period_s", "periodic_gains_v_per_m_s", "periodic_phases_rad",
+                 "periodic_radius")
+MAX_HARMONICS = 64
 #: the bound on a tune setpoint the request alone can check: a leveling sensor reads
 #: micrometres, so a setpoint of millimetres is a unit slip (1 for 1e-6), not a setting
 SETPOINT_BOUND_M = 1e-3
@@ -193,12 +198,36 @@ def _check_watch(req: dict[str, Any]) -> None:
                             f"got {rate!r}")
 
 
-def tune_args(req: dict[str, Any]) -> tuple[dict[str, float], bool]:
-    """The numeric settings of a tune request, type- and sign-checked, and its persist flag."""
-    extra = sorted(set(req) - set(TUNE_KEYS) - {"v", "verb", "persist", "force"})
+def _periodic_args(req: dict[str, Any]) -> dict[str, Any]:
+    """The resonant terms' settings of a tune request, type-checked (their consistency is
+    the controller config's to check)."""
+    out: dict[str, Any] = {}
+    for key in PERIODIC_KEYS:
+        if key not in req:
+            continue
+        value = req[key]
+        if key in ("periodic_gains_v_per_m_s", "periodic_phases_rad"):
+            if not isinstance(value, list) or len(value) > MAX_HARMONICS or not all(
+                    not isinstance(v, bool) and isinstance(v, int | float)
+                    and math.isfinite(v) for v in value):
+                raise ProtocolError(f"tune: {key} must be a list of at most {MAX_HARMONICS} "
+                                    f"finite numbers, got {value!r}")
+            out[key] = tuple(float(v) for v in value)
+        else:
+            if isinstance(value, bool) or not isinstance(value, int | float) or not (
+                    math.isfinite(value) and value >= 0):
+                raise ProtocolError(f"tune: {key} must be a finite number >= 0, got {value!r}")
+            out[key] = float(value)
+    return out
+
+
+def tune_args(req: dict[str, Any]) -> tuple[dict[str, Any], bool]:
+    """The settings of a tune request, type- and sign-checked, and its persist flag."""
+    keys = (*TUNE_KEYS, *PERIODIC_KEYS)
+    extra = sorted(set(req) - set(keys) - {"v", "verb", "persist", "force"})
     if extra:
-        raise ProtocolError(f"tune: unknown key {extra[0]!r}; keys: {', '.join(TUNE_KEYS)}")
-    values: dict[str, float] = {}
+        raise ProtocolError(f"tune: unknown key {extra[0]!r}; keys: {', '.join(keys)}")
+    values: dict[str, Any] = _periodic_args(req)
     for key, lower in TUNE_KEYS.items():
         if key not in req:
             continue
@@ -227,7 +256,7 @@ def tune_args(req: dict[str, Any]) -> tuple[dict[str, float], bool]:
     persist = bool_arg(req, "tune", "persist")
     bool_arg(req, "tune", "force")
     if not values:
-        raise ProtocolError(f"tune: nothing to change; keys: {', '.join(TUNE_KEYS)}")
+        raise ProtocolError(f"tune: nothing to change; keys: {', '.join(keys)}")
     return values, persist
 
 

@@ -43,6 +43,7 @@ from leveler.daemon.control_server import (
 from leveler.daemon.notify import Notifier
 from leveler.daemon.persist import set_keys, write_atomic
 from leveler.daemon.protocol import (
+    PERIODIC_KEYS,
     ProtocolError,
     bool_arg,
     default_socket_path,
@@ -270,7 +271,8 @@ class Daemon:
     def _instability(self, plant: PlantParams, c: ControllerConfig) -> str | None:
         """Why the plant model predicts `c`'s gains unstable at the running rate, or None."""
         return predicted_instability(plant, self.cfg.loop.rate_hz, c.kp_v_per_m,
-                                     c.ki_v_per_m_s, c.kd_v_s_per_m, c.d_filter_tau_s)
+                                     c.ki_v_per_m_s, c.kd_v_s_per_m, c.d_filter_tau_s,
+                                     c.periodic_terms())
 
     def _unstable_at_start(self) -> str | None:
         """Why the plant model says the configured gains make an unstable loop, or None.
@@ -289,7 +291,8 @@ class Daemon:
                          new: ControllerConfig) -> None:
         """ProtocolError if `new` changes the loop's gains to ones the plant model predicts
         unstable at the running rate (a setpoint or limit change is never refused here)."""
-        gains = ("kp_v_per_m", "ki_v_per_m_s", "kd_v_s_per_m", "d_filter_tau_s")
+        gains = ("kp_v_per_m", "ki_v_per_m_s", "kd_v_s_per_m", "d_filter_tau_s",
+                 *PERIODIC_KEYS)
         if all(getattr(old, k) == getattr(new, k) for k in gains):
             return
         why = self._instability(plant, new)
@@ -442,7 +445,7 @@ class Daemon:
         self.loop.reset(t, f"reset by {who}")
         return self.loop.state
 
-    def _validated(self, values: dict[str, float]) -> ControllerConfig:
+    def _validated(self, values: dict[str, Any]) -> ControllerConfig:
         """The controller config with `values` applied, checked as a whole first."""
         try:
             check_tune_values(self.cfg, values)  # within the sensor's and actuator's ranges
@@ -467,11 +470,13 @@ class Daemon:
         gains = PIDGains(new.kp_v_per_m, new.ki_v_per_m_s, new.kd_v_s_per_m)
         if gains != PIDGains(old.kp_v_per_m, old.ki_v_per_m_s, old.kd_v_s_per_m):
             pid.set_gains(gains)
+        if new.periodic_terms() != old.periodic_terms():
+            pid.set_periodic(new.periodic_terms())
         self.cfg = dataclasses.replace(self.cfg, controller=new)
         if changed:
             self.loop.emit("tune", reason, t, **changed)
 
-    def _persist(self, values: dict[str, float]) -> None:
+    def _persist(self, values: dict[str, Any]) -> None:
         with self._config_lock:
             try:
                 text = set_keys(self.config_path.read_text(), "controller", values)

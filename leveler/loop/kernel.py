@@ -23,8 +23,8 @@ import numpy as np
 
 # The float state: plant, pendulum, PID, loop.
 (V_APPLIED, V_TARGET, V_EFFECTIVE, LAG_V, THETA, OMEGA, PHI, SP, OUTPUT, UNCLAMPED, INTEGRAL,
- ERR, DF, PREV, HELD_V, LAST_VALUE_M, LAST_GOOD_M) = range(17)
-N_STATE = 17
+ ERR, DF, PREV, R_LAST, RES_WAIT_S, HELD_V, LAST_VALUE_M, LAST_GOOD_M) = range(19)
+N_STATE = 19
 # The integer state: plant step, index in the disturbance block, sample seq, clock tick,
 # the screen's run counters, and the loop state (IDLE or ENGAGED).
 (N, BLOCK_I, SEQ, TICK, SAME, SPIKES, ENGAGED) = range(7)
@@ -41,6 +41,9 @@ N_CONST = 41
 N_OUT = 15
 # Rows of the integer output.
 RAW_COUNTS, SATURATED = range(2)
+# Rows of the resonant terms' array: rotation, output projection, state (leveler.loop.resonant).
+RES_C, RES_S, RES_COS_OUT, RES_SIN_OUT, RES_RE, RES_IM = range(6)
+N_RES = 6
 # Why `cycles` returned.
 DONE = 0  # `limit` cycles run
 BEFORE = 1  # the next cycle needs the objects from its start (a new block, an odd step)
@@ -51,13 +54,15 @@ _SAMPLE_TRACKING_GAIN = 1.0 / (3.0 + 1.0)  # as leveler.loop.pid
 
 def cycles(s: np.ndarray, c: np.ndarray, k: np.ndarray, thermal: np.ndarray,
            cooler: np.ndarray, effect: np.ndarray, noise: np.ndarray, drift: np.ndarray,
-           temperature: np.ndarray, out: np.ndarray, out_i: np.ndarray,
+           temperature: np.ndarray, res: np.ndarray, out: np.ndarray, out_i: np.ndarray,
            limit: int) -> tuple[int, int]:
     """Run up to `limit` cycles from state (s, c); returns (cycles completed, why it stopped).
 
-    Each completed cycle fills column j of `out`/`out_i`. The statements mirror
-    `SimulatedStand.read`, `Plant.step`/`measure`, `PendulumModel.step`, `Loop._screen`,
-    `PID.update`, `Plant.command` and `Plant.truth` one for one; change them together."""
+    `res` holds the PID's resonant terms, one column each (rows RES_*: rotation, output
+    projection, state), none when it has none. Each completed cycle fills column j of
+    `out`/`out_i`. The statements mirror `SimulatedStand.read`, `Plant.step`/`measure`,
+    `PendulumModel.step`, `Loop._screen`, `PID.update`, `Resonators`, `Plant.command` and
+    `Plant.truth` one for one; change them together."""
     blen = len(noise)
     inf = math.inf
     tilt_per_v, v_ref = k[K_TILT_PER_V], k[K_V_REF]
@@ -150,7 +155,15 @@ def cycles(s: np.ndarray, c: np.ndarray, k: np.ndarray, thermal: np.ndarray,
             df = (tau * s[DF] + (value - s[PREV])) / (tau + dt)
             d = -k[K_KD] * df
             integral = s[INTEGRAL]
-            u = p + integral + d
+            nres = res.shape[1]
+            r = 0.0
+            if nres == 0:
+                u = p + integral + d
+            else:
+                for j in range(nres):
+                    r += (res[RES_COS_OUT, j] * res[RES_RE, j]
+                          - res[RES_SIN_OUT, j] * res[RES_IM, j])
+                u = p + integral + r + d
             lo, hi = k[K_LO], k[K_HI]
             cmd = lo if u < lo else hi if u > hi else u
             last = s[OUTPUT]
@@ -174,6 +187,18 @@ def cycles(s: np.ndarray, c: np.ndarray, k: np.ndarray, thermal: np.ndarray,
             s[ERR] = error
             s[DF] = df
             s[PREV] = value
+            if nres != 0:
+                if s[RES_WAIT_S] > 0.0:
+                    s[RES_WAIT_S] -= dt
+                    x = 0.0
+                else:
+                    x = error * dt if cmd == u else 0.0
+                for j in range(nres):
+                    a, b = res[RES_RE, j], res[RES_IM, j]
+                    res[RES_RE, j] = res[RES_C, j] * a - res[RES_S, j] * b + x
+                    res[RES_IM, j] = res[RES_S, j] * a + res[RES_C, j] * b
+                s[R_LAST] = r
+                integral = integral + r  # reported within i_v, as PID.update does
             setpoint = sp
             saturated = cmd != u
         else:

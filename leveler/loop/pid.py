@@ -13,6 +13,9 @@ Design choices, and why:
   samples of the error reversing.
 * It never reads a clock: the caller passes ``dt``, so simulation and hardware share one
   code path and tests are deterministic.
+* Optional resonant terms (``PIDConfig.periodic``, leveler.loop.resonant) are the
+  integral's counterpart for a periodic disturbance; their output is reported within
+  ``i_v`` (both are the controller's internal models), so p + i + d stays the command.
 * :meth:`PID.update` runs at up to 1 kHz in Python next to a simulator, so it is plain
   float arithmetic on slotted attributes, allocating only the returned record.
 """
@@ -20,8 +23,9 @@ Design choices, and why:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
+from leveler.loop.resonant import PeriodicTerms, Resonators
 from leveler.typed_config import non_negative, positive
 
 _INF = math.inf
@@ -29,6 +33,8 @@ _INF = math.inf
 # Back-calculation gain per sample when kp == 0 leaves no time scale to derive the tracking
 # time from: track over about three samples, i.e. dt / (Tt + dt) with Tt = 3 dt.
 _SAMPLE_TRACKING_GAIN = 1.0 / (3.0 + 1.0)
+# Resonant terms start being fed this many periods after an engage (see `update`).
+ENGAGE_SETTLE_PERIODS = 0.1
 
 
 def _require_finite(name: str, value: float) -> None:
@@ -73,6 +79,7 @@ class PIDConfig:
     d_filter_tau_s: float = 0.0  # first-order low-pass on the derivative; 0 = none
     setpoint_ramp_m_per_s: float = math.inf  # setpoint changes ramp at this rate
     tracking_time_s: float = 0.0  # back-calculation time constant; 0 = derived from the gains
+    periodic: PeriodicTerms | None = None  # resonant terms for a periodic disturbance
 
     def __post_init__(self) -> None:
         _require_finite("output_min_v", self.output_min_v)
@@ -104,6 +111,10 @@ class ControllerConfig:
     d_filter_tau_s: float = non_negative(0.5)
     setpoint_ramp_m_per_s: float = positive(math.inf, allow_inf=True)
     tracking_time_s: float = non_negative(0.0)
+    periodic_period_s: float = non_negative(0.0)  # 0: no resonant terms
+    periodic_gains_v_per_m_s: tuple[float, ...] = ()  # harmonics 1, 2, ... of the period
+    periodic_phases_rad: tuple[float, ...] = ()
+    periodic_radius: float = field(default=1.0, metadata={"gt": 0.0, "le": 1.0})
 
     def __post_init__(self) -> None:
         if not self.output_min_v < self.output_max_v:
@@ -111,6 +122,18 @@ class ControllerConfig:
                 f"output_min_v ({self.output_min_v}) must be below "
                 f"output_max_v ({self.output_max_v})"
             )
+        if len(self.periodic_gains_v_per_m_s) != len(self.periodic_phases_rad):
+            raise ValueError(
+                f"periodic_phases_rad needs one phase per gain of periodic_gains_v_per_m_s "
+                f"({len(self.periodic_phases_rad)} vs {len(self.periodic_gains_v_per_m_s)})")
+        if self.periodic_gains_v_per_m_s and not self.periodic_period_s > 0:
+            raise ValueError("periodic_gains_v_per_m_s needs periodic_period_s > 0")
+
+    def periodic_terms(self) -> PeriodicTerms | None:
+        if not (self.periodic_period_s > 0 and self.periodic_gains_v_per_m_s):
+            return None
+        return PeriodicTerms(self.periodic_period_s, tuple(self.periodic_gains_v_per_m_s),
+                             tuple(self.periodic_phases_rad), self.periodic_radius)
 
     def pid_config(self) -> PIDConfig:
         return PIDConfig(
@@ -122,6 +145,7 @@ class ControllerConfig:
             d_filter_tau_s=self.d_filter_tau_s,
             setpoint_ramp_m_per_s=self.setpoint_ramp_m_per_s,
             tracking_time_s=self.tracking_time_s,
+            periodic=self.periodic_terms(),
         )
 
 
@@ -172,7 +196,10 @@ class PID:
         "_lo",
         "_out",
         "_prev",
+        "_r",
         "_ramp",
+        "_res",
+        "_res_wait_s",
         "_slew",
         "_sp",
         "_target",
@@ -197,6 +224,9 @@ class PID:
         self._err = 0.0
         self._df = 0.0
         self._prev: float | None = None  # None: the next update seeds the loop state
+        self._r = 0.0  # the resonant terms' output in the last update
+        self._res = None if config.periodic is None else Resonators(config.periodic)
+        self._res_wait_s = 0.0  # until the resonant terms are fed (after an engage)
 
     @property
     def config(self) -> PIDConfig:
@@ -263,7 +293,13 @@ class PID:
             df = (tau * self._df + (measurement_m - prev)) / (tau + dt_s)
         d = -self._kd * df
         i = self._i
-        u = p + i + d
+        res = self._res
+        if res is None:
+            r = 0.0
+            u = p + i + d
+        else:
+            r = res.output_v()
+            u = p + i + r + d
 
         lo = self._lo
         hi = self._hi
@@ -289,13 +325,23 @@ class PID:
             raise OverflowError(f"PID arithmetic overflowed (measurement {measurement_m!r} m, "
                                 f"p {p!r} V, i {i!r} V, d {d!r} V)")
         self._i = i_next
+        if res is not None:  # fed unless the command sits on a rail
+            # Fed while the command follows the sum (not railed or slew-limited), and not in
+            # the engage transient, which is the PID's to take out: fed, it rings the terms
+            # (a 430 nm engage left 1.9x the sensor floor at 8 mHz over the next 6 h).
+            if self._res_wait_s > 0.0:
+                self._res_wait_s -= dt_s
+                res.advance(error, dt_s, feed=False)
+            else:
+                res.advance(error, dt_s, feed=cmd == u)
+            self._r = r
 
         self._out = cmd
         self._u = u
         self._err = error
         self._df = df
         self._prev = measurement_m
-        return PIDOutput(sp, error, p, i, d, cmd, cmd != u)
+        return PIDOutput(sp, error, p, i if res is None else i + r, d, cmd, cmd != u)
 
     def set_gains(self, gains: PIDGains) -> None:
         """Change gains without a bump: the next output continues from the current one.
@@ -305,8 +351,18 @@ class PID:
         taken in the last update, a one-sample loss the loop makes up at once.
         """
         config = replace(self._config, gains=gains)
-        self._i = self._u - gains.kp * self._err + gains.kd * self._df
+        self._i = self._u - self._r - gains.kp * self._err + gains.kd * self._df
         self._apply(config)
+
+    def set_periodic(self, terms: PeriodicTerms | None) -> None:
+        """Switch resonant terms on, off or to new ones without a bump: the new terms start
+        from rest and whatever the old ones were adding moves into the integral, so the
+        next output continues from the current one."""
+        if self._res is not None:
+            self._i += self._res.output_v()
+        self._r = 0.0
+        self._res = None if terms is None else Resonators(terms)
+        self._apply(replace(self._config, periodic=terms))
 
     def set_setpoint(self, setpoint_m: float) -> None:
         """Set the target; the effective setpoint ramps toward it in later updates."""
@@ -335,6 +391,10 @@ class PID:
         _require_finite("output_v", output_v)
         out = min(max(output_v, self._lo), self._hi)
         error = self._sp - measurement_m
+        if self._config.periodic is not None:  # the disturbance's phase is unknown: from rest
+            self._res = Resonators(self._config.periodic)
+            self._r = 0.0
+            self._res_wait_s = ENGAGE_SETTLE_PERIODS * self._config.periodic.period_s
         self._prev = measurement_m
         self._df = 0.0
         self._err = error
