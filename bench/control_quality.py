@@ -25,9 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
+from leveler.analysis.periodic import floor_tilt
 from leveler.analysis.spectral import asd_at
 from leveler.settings import Config, load_config
-from leveler.sim.disturbance import Disturbances
 from leveler.virtual import run_virtual
 
 REPO = Path(__file__).resolve().parents[1]
@@ -68,19 +68,6 @@ def variants(cfg: Config) -> list[tuple[str, Config]]:
         (f"{COARSE_ADC_BITS}-bit ADC + {OVERSAMPLE}x oversampling",
          _sensor(coarse, samples_per_cycle=OVERSAMPLE)),
     ]
-
-
-def floor_tilt(cfg: Config, n: int, seed: int) -> np.ndarray:
-    """(sensor white noise + zero drift) / G0 [rad]: what a perfect loop leaves on the table."""
-    dist = Disturbances(cfg.plant, 1.0 / cfg.loop.rate_hz, seed)
-    noise: list[float] = []
-    drift: list[float] = []
-    while len(noise) < n:
-        b = dist.next_block()
-        noise.extend(b.noise_m)
-        drift.extend(b.drift_m)
-    g0 = cfg.plant.pendulum.sensor_arm_m * cfg.plant.pendulum.amplification
-    return (np.asarray(noise[:n]) + np.asarray(drift[:n])) / g0
 
 
 def _asd(x: np.ndarray, fs: float, freqs: tuple[float, ...]) -> np.ndarray:

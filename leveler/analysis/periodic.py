@@ -1,0 +1,224 @@
+"""Resonant terms against a named periodic disturbance, designed through the plant model.
+
+The loop L0 = C0 P (the configured PID, `suggest.controller_tf`, and the plant,
+`suggest.plant_tf`) leaves a periodic disturbance's lines suppressed by |1 + L0| only. A
+resonant term R_h at each harmonic h of the period (leveler.loop.resonant) makes the
+suppression infinite at the line. Added to C0, it closes a loop of its own through the
+process sensitivity G = P / (1 + L0): near the line, R_h ~ (k_h / 2) e^(j(phase_h - theta_h))
+/ s (theta_h = w_h dt, the term's one sample of delay), so with
+
+    phase_h = theta_h - arg G(w_h),    k_h = 2 beta / |G(w_h)|
+
+R_h G ~ beta / s: an integrator of its own, whose closed-loop pole sits at -beta beside the
+line (it settles in ~1 / beta; `beta_rel` is beta in units of the fundamental, 2 pi / T).
+That is the design; the check does not trust it: stability from the closed loop's
+state-space eigenvalues (high-order transfer functions lose the poles near z = 1 to
+rounding), and the gain and phase margins of the summed frequency response, for the
+nominal model and every corner of its stated tolerances (+-2 sigma of the sensor and
+actuator paths, the resonance frequency and Q; `recalibrate.knobs`).
+
+Harmonics: those where the PID alone still has loop gain to build on, |1 + L0| >= 10
+(above that a term only trades the line for shoulders beside it), at most 30.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+
+import control
+import numpy as np
+
+from leveler.analysis.recalibrate import knobs
+from leveler.analysis.suggest import MIN_GAIN_MARGIN_DB, _response, controller_tf, plant_tf
+from leveler.loop.pid import ControllerConfig
+from leveler.loop.resonant import PeriodicTerms
+from leveler.settings import Config
+from leveler.sim.disturbance import Disturbances
+from leveler.sim.effects import PeriodicDisturbance
+from leveler.sim.params import PlantParams
+
+MIN_PHASE_MARGIN_DEG = 40.0
+MIN_LOOP_GAIN = 10.0  # |1 + L0| at a harmonic worth a term
+MAX_HARMONICS = 30
+BETA_REL = 0.3  # each term's settling rate, in units of the fundamental (rad/s)
+CORNER_SIGMAS = 2.0
+_DYNAMIC_KNOBS = ("sensor_path", "actuator_path", "natural_frequency", "q")
+
+
+@dataclass(frozen=True)
+class Disturbance:
+    """The periodic disturbance a model names: where it came from and its period."""
+
+    source: str  # "[plant.effects.periodic_disturbance]" or "[plant.cooler]"
+    period_s: float
+    peak_to_peak_rad: float
+
+
+@dataclass(frozen=True)
+class LoopCheck:
+    """Stability and margins of a loop, the worst over the model's tolerance corners."""
+
+    stable: bool
+    gain_margin_db: float
+    phase_margin_deg: float
+    max_sensitivity: float  # max |1 / (1 + L)|: 1 / the smallest distance to -1
+    corners: int  # models checked: the nominal one and every tolerance corner
+    worst_corner: str
+
+    @property
+    def ok(self) -> bool:
+        return (self.stable and self.gain_margin_db >= MIN_GAIN_MARGIN_DB
+                and self.phase_margin_deg >= MIN_PHASE_MARGIN_DEG)
+
+
+def named_disturbance(params: PlantParams) -> Disturbance | None:
+    """The model's periodic disturbance: a fitted effect first (what diagnose named), else
+    the configured cooler; None when there is neither."""
+    for fx in params.effects.of("tilt"):
+        if isinstance(fx, PeriodicDisturbance) and fx.peak_to_peak_rad != 0:
+            return Disturbance("[plant.effects.periodic_disturbance]", fx.period_s,
+                               abs(fx.peak_to_peak_rad))
+    co = params.cooler
+    if co.peak_to_peak_rad > 0:
+        return Disturbance("[plant.cooler]", co.period_s, co.peak_to_peak_rad)
+    return None
+
+
+def _resonator_tf(k: float, phase: float, theta: float, radius: float,
+                  dt: float) -> control.TransferFunction:
+    """One term from error to volts: k dt (cos(phase) z - r cos(phase - theta)) /
+    (z^2 - 2 r cos(theta) z + r^2) (leveler.loop.resonant's recursion)."""
+    return control.tf([k * dt * math.cos(phase), -k * dt * radius * math.cos(phase - theta)],
+                      [1.0, -2.0 * radius * math.cos(theta), radius * radius], dt)
+
+
+def controller_parts(c: ControllerConfig, rate_hz: float) -> list[control.TransferFunction]:
+    """The controller as a sum of small transfer functions: the PID, then each term."""
+    parts = [controller_tf(c.kp_v_per_m, c.ki_v_per_m_s, c.kd_v_s_per_m, c.d_filter_tau_s,
+                           rate_hz)]
+    terms = c.periodic_terms()
+    if terms is not None:
+        dt = 1.0 / rate_hz
+        for h, (k, ph) in enumerate(zip(terms.gains_v_per_m_s, terms.phases_rad,
+                                        strict=True), 1):
+            theta = 2 * math.pi * h / terms.period_s * dt
+            parts.append(_resonator_tf(k, ph, theta, terms.radius, dt))
+    return parts
+
+
+def design(params: PlantParams, rate_hz: float, c: ControllerConfig, period_s: float, *,
+           harmonics: int | None = None, beta_rel: float = BETA_REL,
+           radius: float = 1.0) -> PeriodicTerms:
+    """Gains and phases of resonant terms at the harmonics of `period_s` on top of the
+    PID in `c` (module doc). ValueError when not even the fundamental has loop gain."""
+    if not period_s > 0:
+        raise ValueError(f"period_s must be > 0, got {period_s}")
+    dt = 1.0 / rate_hz
+    plant = plant_tf(params, rate_hz)
+    pid = controller_parts(c, rate_hz)[0]
+    w1 = 2 * math.pi / period_s
+    gains: list[float] = []
+    phases: list[float] = []
+    limit = MAX_HARMONICS if harmonics is None else harmonics
+    for h in range(1, limit + 1):
+        f = h / period_s
+        if f >= rate_hz / 4:
+            break
+        p, l0 = complex(_response(plant, f)), complex(_response(pid, f) * _response(plant, f))
+        if harmonics is None and abs(1 + l0) < MIN_LOOP_GAIN:
+            break
+        g = p / (1 + l0)
+        gains.append(float(f"{2 * beta_rel * w1 / abs(g):.4g}"))
+        phases.append(float(f"{2 * math.pi * f * dt - np.angle(g):.6g}"))
+    if not gains:
+        raise ValueError(
+            f"the loop has too little gain at 1/{period_s:g} s = {1e3 / period_s:.3g} mHz "
+            f"(|1 + L| < {MIN_LOOP_GAIN:g}) for a resonant term to build on")
+    return PeriodicTerms(period_s, tuple(gains), tuple(phases), radius)
+
+
+def _vary(params: PlantParams, corner: dict[str, float]) -> PlantParams:
+    by_name = {k.name: k for k in knobs(params, temperature_logged=False, excited=True)}
+    for name, d in corner.items():
+        params = by_name[name].apply(params, d)
+    return params
+
+
+def corners(params: PlantParams) -> list[tuple[str, PlantParams]]:
+    """The nominal model and each +-CORNER_SIGMAS corner of its dynamic tolerances."""
+    ks = [k for k in knobs(params, temperature_logged=False, excited=True)
+          if k.name in _DYNAMIC_KNOBS]
+    out = [("nominal", params)]
+    for signs in itertools.product((-1, 1), repeat=len(ks)):
+        corner = {k.name: s * CORNER_SIGMAS * k.sigma for k, s in zip(ks, signs, strict=True)}
+        label = ", ".join(f"{n} {d * 100:+.3g} %" for n, d in corner.items())
+        out.append((label, _vary(params, corner)))
+    return out
+
+
+def _one(params: PlantParams, rate_hz: float, c: ControllerConfig,
+         f_hz: np.ndarray) -> tuple[bool, float, float, float]:
+    plant = plant_tf(params, rate_hz)
+    parts = controller_parts(c, rate_hz)
+    ctrl = control.ss(parts[0])
+    for part in parts[1:]:
+        ctrl = control.parallel(ctrl, control.ss(part))
+    closed = control.feedback(control.series(ctrl, control.ss(plant)), 1)
+    stable = bool(np.all(np.abs(np.linalg.eigvals(closed.A)) < 1.0))
+    loop = sum(_response(p, f_hz) for p in parts) * _response(plant, f_hz)
+    gm_db, pm = margins(loop)
+    return stable, gm_db, pm, float(np.max(1 / np.abs(1 + loop)))
+
+
+def margins(loop: np.ndarray) -> tuple[float, float]:
+    """(gain margin [dB], phase margin [deg]) of a loop's response on a dense grid: at each
+    crossing of the negative real axis, how far |L| is from 1 either way (a gain that may
+    rise or, where |L| > 1, fall before the loop goes unstable); at each crossing of |L| = 1,
+    how far the phase is from -180 deg. inf where there is no crossing. The grid must be
+    dense (check's is): crossings are read between neighbouring points."""
+    mag = np.abs(loop)
+    gm = math.inf
+    axis = np.nonzero((np.sign(loop.imag[:-1]) != np.sign(loop.imag[1:]))
+                      & (loop.real[:-1] + loop.real[1:] < 0))[0]
+    for i in axis:
+        w = loop.imag[i] / (loop.imag[i] - loop.imag[i + 1])
+        m = mag[i] + w * (mag[i + 1] - mag[i])
+        gm = min(gm, abs(20 * math.log10(m)))
+    pm = math.inf
+    for i in np.nonzero(np.sign(mag[:-1] - 1) != np.sign(mag[1:] - 1))[0]:
+        w = (mag[i] - 1) / (mag[i] - mag[i + 1])
+        z = loop[i] + w * (loop[i + 1] - loop[i])
+        pm = min(pm, 180.0 - abs(math.degrees(np.angle(z))))
+    return gm, pm
+
+
+def check(params: PlantParams, rate_hz: float, c: ControllerConfig) -> LoopCheck:
+    """The loop `c` makes on the model and on every tolerance corner (module doc)."""
+    terms = c.periodic_terms()
+    lines = [] if terms is None else [h / terms.period_s
+                                      for h in range(1, len(terms.gains_v_per_m_s) + 1)]
+    # dense around each line, never on one (|L| is infinite there)
+    f_hz = np.unique(np.concatenate([
+        np.geomspace(1e-6, rate_hz / 2 * (1 - 1e-9), 6000),
+        *[np.linspace(f * 0.9, f * 1.1, 200) for f in lines]]))
+    results = [(label, _one(p, rate_hz, c, f_hz)) for label, p in corners(params)]
+    unstable = [label for label, r in results if not r[0]]
+    worst_label = unstable[0] if unstable else max(results, key=lambda lr: lr[1][3])[0]
+    return LoopCheck(not unstable, min(r[1] for _, r in results),
+                     min(r[2] for _, r in results), max(r[3] for _, r in results),
+                     len(results), worst_label)
+
+
+def floor_tilt(cfg: Config, n: int, seed: int) -> np.ndarray:
+    """(sensor white noise + zero drift) / G0 [rad], drawn as a run with this seed draws
+    them: what a perfect loop leaves on the table (it nulls its reading, so the platform
+    is tilted by exactly what the sensor gets wrong; G0 = sensor arm x amplification)."""
+    dist = Disturbances(cfg.plant, 1.0 / cfg.loop.rate_hz, seed)
+    noise: list[np.ndarray] = []
+    while sum(len(b) for b in noise) < n:
+        b = dist.next_block()
+        noise.append(b.arrays["noise_m"] + b.arrays["drift_m"])
+    g0 = cfg.plant.pendulum.sensor_arm_m * cfg.plant.pendulum.amplification
+    return np.concatenate(noise)[:n] / g0
