@@ -23,6 +23,7 @@ Harmonics: those where the PID alone still has loop gain to build on, |1 + L0| >
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 from dataclasses import dataclass
@@ -31,7 +32,13 @@ import control
 import numpy as np
 
 from leveler.analysis.recalibrate import knobs
-from leveler.analysis.suggest import MIN_GAIN_MARGIN_DB, _response, controller_tf, plant_tf
+from leveler.analysis.suggest import (
+    MIN_GAIN_MARGIN_DB,
+    _response,
+    _toml_float,
+    controller_tf,
+    plant_tf,
+)
 from leveler.loop.pid import ControllerConfig
 from leveler.loop.resonant import PeriodicTerms
 from leveler.settings import Config
@@ -222,3 +229,102 @@ def floor_tilt(cfg: Config, n: int, seed: int) -> np.ndarray:
         noise.append(b.arrays["noise_m"] + b.arrays["drift_m"])
     g0 = cfg.plant.pendulum.sensor_arm_m * cfg.plant.pendulum.amplification
     return np.concatenate(noise)[:n] / g0
+
+
+@dataclass(frozen=True)
+class Predicted:
+    """The true tilt a simulated run of the model leaves, as ASD [rad/rtHz] at `freqs_hz`
+    for the current and the suggested controller and the sensor floor; `lines` of them are
+    the disturbance's harmonics, the rest a log-spaced grid."""
+
+    duration_s: float
+    freqs_hz: np.ndarray
+    lines: int
+    current: np.ndarray
+    suggested: np.ndarray
+    floor: np.ndarray
+
+    def worst_over_floor(self, which: str, lo_hz: float, hi_hz: float) -> tuple[float, float]:
+        """(max ASD / floor, where) over [lo_hz, hi_hz]."""
+        ratio = getattr(self, which) / self.floor
+        band = (self.freqs_hz >= lo_hz) & (self.freqs_hz <= hi_hz)
+        i = int(np.argmax(np.where(band, ratio, -np.inf)))
+        return float(ratio[i]), float(self.freqs_hz[i])
+
+
+def predict(model: Config, current: ControllerConfig, suggested: ControllerConfig,
+            period_s: float, duration_s: float, seed: int = 1) -> Predicted:
+    """Both controllers closing the loop on the model's simulated stand over the same
+    disturbance realization (leveler.virtual, so its own loop, limits and ADC): the
+    true tilt's ASD at the disturbance's first lines and across 0.1-100 mHz, where the
+    record resolves them, beside the sensor floor."""
+    from leveler.analysis.spectral import asd_at
+    from leveler.virtual import run_virtual
+
+    rate = model.loop.rate_hz
+    lines = [h / period_s for h in range(1, 6) if h / period_s <= 0.1]
+    grid = [f for f in np.geomspace(1e-4, 1e-1, 31) if f * duration_s >= 20]
+    freqs = np.array(lines + grid)
+    runs = [run_virtual(dataclasses.replace(model, controller=c), duration_s, seed,
+                        engaged=True) for c in (current, suggested)]
+    floor = floor_tilt(model, len(runs[0].tilt_rad), seed)
+    cur, sug, fl = (asd_at(x, rate, list(freqs)) for x in
+                    (runs[0].tilt_rad, runs[1].tilt_rad, floor))
+    return Predicted(duration_s, freqs, len(lines), cur, sug, fl)
+
+
+def _hz(f: float) -> str:
+    return f"{f * 1e3:.3g} mHz"
+
+
+def _toml_list(xs: tuple[float, ...]) -> str:
+    return "[" + ", ".join(_toml_float(x) for x in xs) + "]"
+
+
+def report(d: Disturbance, terms: PeriodicTerms, c: ControllerConfig, ours: LoopCheck,
+           theirs: LoopCheck, pred: Predicted | None) -> str:
+    """The suggestion as config lines, its margins beside the current loop's, and what the
+    model predicts it does to the true tilt."""
+    n = len(terms.gains_v_per_m_s)
+    lines = [
+        f"The model names a periodic disturbance: {d.source}, period {d.period_s:g} s, "
+        f"{d.peak_to_peak_rad * 1e9:.3g} nrad peak to peak.",
+        f"Suggested: resonant terms at harmonics 1-{n} ({_hz(1 / d.period_s)} to "
+        f"{_hz(n / d.period_s)}) added to the PID (kp {c.kp_v_per_m:g} V/m, "
+        f"ki {c.ki_v_per_m_s:g} V/(m s), kd {c.kd_v_s_per_m:g} V s/m):",
+        "[controller]",
+        f"periodic_period_s = {_toml_float(terms.period_s)}",
+        f"periodic_gains_v_per_m_s = {_toml_list(terms.gains_v_per_m_s)}",
+        f"periodic_phases_rad = {_toml_list(terms.phases_rad)}",
+        "",
+        f"{'':<34}{'suggested':<22}current",
+    ]
+    rows = [
+        ("closed loop", *(("stable" if x.stable else "UNSTABLE") + f" ({x.corners} models)"
+                          for x in (ours, theirs))),
+        ("gain margin, worst", *(f"{x.gain_margin_db:.1f} dB" for x in (ours, theirs))),
+        ("phase margin, worst", *(f"{x.phase_margin_deg:.1f} deg" for x in (ours, theirs))),
+        ("peak |1 / (1 + L)|, worst", *(f"{x.max_sensitivity:.2f}" for x in (ours, theirs))),
+    ]
+    lines += [f"{a:<34}{b:<22}{c_}" for a, b, c_ in rows]
+    lines += [f"models: the fitted one and each +-{CORNER_SIGMAS:g} sigma corner of its "
+              "stated tolerances (sensor and actuator paths, resonance frequency, Q); "
+              f"worst: {ours.worst_corner}; goals: >= {MIN_GAIN_MARGIN_DB:g} dB, "
+              f">= {MIN_PHASE_MARGIN_DEG:g} deg"]
+    if pred is not None:
+        lines += ["", f"Predicted true tilt on the model ({pred.duration_s / 3600:g} h simulated, "
+                  "the same disturbances both ways) [nrad/rtHz]:",
+                  f"{'':<34}{'suggested':<22}{'current':<22}sensor floor"]
+        for j in range(pred.lines):
+            lines.append(f"{'ASD at ' + _hz(pred.freqs_hz[j]) + f' (line {j + 1})':<34}"
+                         f"{pred.suggested[j] * 1e9:<22.3g}{pred.current[j] * 1e9:<22.3g}"
+                         f"{pred.floor[j] * 1e9:.3g}")
+        for lo, hi, band in ((1e-4, 1e-2, "0.1-10 mHz"), (1e-2, 1e-1, "10-100 mHz")):
+            if not np.any((pred.freqs_hz >= lo) & (pred.freqs_hz <= hi)):
+                continue
+            cells = []
+            for which in ("suggested", "current"):
+                r, f = pred.worst_over_floor(which, lo, hi)
+                cells.append(f"{r:.2f}x at {_hz(f)}")
+            lines.append(f"{'worst over the floor, ' + band:<34}{cells[0]:<22}{cells[1]}")
+    return "\n".join(lines)

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
 from pathlib import Path
+from typing import Any
 
 from leveler.cli.common import add_socket
 from leveler.daemon.client import Client, ClientError
@@ -24,7 +26,12 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         "New gains that the plant model predicts make the loop unstable (closed-loop poles) are "
         "refused unless --force. "
         "With --suggest, propose gains from the configured plant model (python-control) and "
-        "print margins; --apply sends them.")
+        "print margins; --apply sends them. With --suggest --model FITTED.toml (what "
+        "`leveler diagnose` writes), propose resonant terms that cancel the periodic "
+        "disturbance the model names (a fitted periodic_disturbance, else its [plant.cooler]) "
+        "on top of the running PID, with their margins over the model's tolerances and the "
+        "true tilt a simulated day predicts; --apply switches them on bumplessly, --persist "
+        "also writes them to the config file.")
     p.add_argument("--kp", type=float, help="proportional gain [V/m]")
     p.add_argument("--ki", type=float, help="integral gain [V/(m s)]")
     p.add_argument("--kd", type=float, help="derivative gain [V s/m]")
@@ -51,6 +58,12 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
                    "(default: the running daemon's, else config/sim.toml)")
     p.add_argument("--apply", action="store_true", help="with --suggest: send the proposal to "
                    "the daemon")
+    p.add_argument("--model", default=None, metavar="FITTED.toml",
+                   help="with --suggest: a model naming a periodic disturbance (`leveler "
+                   "diagnose LOG` writes LOG.fitted.toml): suggest resonant terms against it")
+    p.add_argument("--predict-hours", type=float, default=24.0,
+                   help="with --suggest --model: hours of the model simulated for the "
+                   "predicted tilt (default: %(default)s; 0: none)")
     add_socket(p)
     p.set_defaults(func=run)
 
@@ -74,8 +87,10 @@ def _shown(value: float | None) -> str:
 def run(args: argparse.Namespace) -> int:
     values = {key: _checked(flag, key, getattr(args, flag)) for flag, key in FLAG_KEYS.items()
               if getattr(args, flag) is not None}
+    if args.model is not None and not args.suggest:
+        raise ClientError("--model goes with --suggest")
     if args.suggest:
-        values.update(_suggest(args))
+        values.update(_suggest_periodic(args) if args.model is not None else _suggest(args))
         if not args.apply:
             return 0
     if not values:
@@ -85,9 +100,63 @@ def run(args: argparse.Namespace) -> int:
         reply = client.request("tune", persist=args.persist, force=args.force, **values)
         with client.reading():
             c = reply["controller"]
-            print("applied: " + ", ".join(f"{k} = {_shown(c[k])}" for k in values)
+            print("applied: " + ", ".join(f"{k} = {_shown(c[k])}" for k in values
+                                          if not isinstance(c[k], list))
+                  + ("; resonant terms at " + str(len(c["periodic_gains_v_per_m_s"]))
+                     + f" harmonics of {c['periodic_period_s']:g} s"
+                     if "periodic_gains_v_per_m_s" in values else "")
                   + ("; written to the config file" if reply["persisted"] else ""))
     return 0
+
+
+def _running_config(args: argparse.Namespace) -> str:
+    """--config, else the running daemon's config file, else config/sim.toml."""
+    if args.config is not None:
+        return str(args.config)
+    try:
+        with Client(args.socket) as client, client.reading():
+            return str(client.request("status")["status"]["config_path"])
+    except ClientError:
+        return "config/sim.toml"
+
+
+def _suggest_periodic(args: argparse.Namespace) -> dict[str, Any]:
+    """Print resonant terms against the model's periodic disturbance; returns them as tune
+    values (on top of the running config's PID and at its loop rate)."""
+    from leveler.analysis import periodic
+    from leveler.settings import load_config
+
+    config = _running_config(args)
+    cfg, _ = load_config(Path(config))
+    model, _ = load_config(Path(args.model))
+    d = periodic.named_disturbance(model.plant)
+    if d is None:
+        raise ClientError(f"--model {args.model}: it names no periodic disturbance (no "
+                          "[plant.effects.periodic_disturbance] and no [plant.cooler] with a "
+                          "peak_to_peak_rad); `leveler diagnose LOG` writes one when it finds it")
+    rate = cfg.loop.rate_hz
+    try:
+        terms = periodic.design(model.plant, rate, cfg.controller, d.period_s)
+    except ValueError as exc:
+        raise ClientError(f"--suggest --model: {exc}") from None
+    values = {"periodic_period_s": terms.period_s,
+              "periodic_gains_v_per_m_s": list(terms.gains_v_per_m_s),
+              "periodic_phases_rad": list(terms.phases_rad),
+              "periodic_radius": terms.radius}
+    new = dataclasses.replace(cfg.controller, **{k: tuple(v) if isinstance(v, list) else v
+                                                 for k, v in values.items()})
+    ours = periodic.check(model.plant, rate, new)
+    theirs = periodic.check(model.plant, rate, cfg.controller)
+    pred = None
+    if args.predict_hours > 0:
+        at_rate = dataclasses.replace(model, loop=cfg.loop)
+        pred = periodic.predict(at_rate, cfg.controller, new, d.period_s,
+                                args.predict_hours * 3600.0)
+    print(f"plant model from {args.model}; controller and loop rate from {config}")
+    print(periodic.report(d, terms, cfg.controller, ours, theirs, pred))
+    if not ours.ok:
+        raise ClientError("the suggested terms miss the margins on some model (above)")
+    return values
 
 
 def _suggest(args: argparse.Namespace) -> dict[str, float]:
@@ -95,13 +164,7 @@ def _suggest(args: argparse.Namespace) -> dict[str, float]:
     from leveler.analysis import suggest
     from leveler.settings import load_config
 
-    config = args.config
-    if config is None:
-        try:
-            with Client(args.socket) as client, client.reading():
-                config = client.request("status")["status"]["config_path"]
-        except ClientError:
-            config = "config/sim.toml"
+    config = _running_config(args)
     cfg, _ = load_config(Path(config))
     c = cfg.controller
     current = suggest.loop_margins(cfg.plant, cfg.loop.rate_hz, c.kp_v_per_m, c.ki_v_per_m_s,
