@@ -59,7 +59,9 @@ def test_diagnose_suggest_apply_and_the_lines_drop(tmp_path: Path, start_daemon)
     assert "closed loop                       stable (17 models)" in out.stdout
     assert "resonant terms at" in out.stdout and "written to the config file" in out.stdout
     status = json.loads(d.cli("status", "--json").stdout)
+    shown = d.cli("status").stdout  # what the physicist sees
     d.stop()
+    assert "resonant terms at harmonics 1-" in shown and "of 300" in shown, shown
     tune = [e for e in read_log(next(d.logs.glob("*.mcap"))).events if e["kind"] == "tune"]
     assert tune and "periodic_gains_v_per_m_s" in tune[-1]["detail"], tune
     assert status["state"] == "engaged"

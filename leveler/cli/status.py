@@ -77,6 +77,9 @@ def format_status(st: dict[str, Any]) -> str:
         f"kd {c['kd_v_s_per_m']:.4g} V s/m  setpoint {c['setpoint_m']:.4g} m  "
         f"limits {c['output_min_v']:g}..{c['output_max_v']:g} V  "
         f"slew {_limit(c['slew_v_per_s'])} V/s",
+        *([f"            resonant terms at harmonics 1-{len(c['periodic_gains_v_per_m_s'])} "
+           f"of {c['periodic_period_s']:g} s (docs/replay.md)"]
+          if c.get("periodic_gains_v_per_m_s") and c.get("periodic_period_s") else []),
         f"loop        {lp['rate_hz']:g} Hz, {lp['cycles']} cycles, period p50/p99/max "
         f"{lp['period_p50_s'] * 1e3:.2f}/{lp['period_p99_s'] * 1e3:.2f}/"
         f"{lp['period_max_s'] * 1e3:.2f} ms, overruns {lp['overruns']}",

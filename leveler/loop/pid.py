@@ -325,7 +325,7 @@ class PID:
             raise OverflowError(f"PID arithmetic overflowed (measurement {measurement_m!r} m, "
                                 f"p {p!r} V, i {i!r} V, d {d!r} V)")
         self._i = i_next
-        if res is not None:  # fed unless the command sits on a rail
+        if res is not None:
             # Fed while the command follows the sum (not railed or slew-limited), and not in
             # the engage transient, which is the PID's to take out: fed, it rings the terms
             # (a 430 nm engage left 1.9x the sensor floor at 8 mHz over the next 6 h).
