@@ -52,10 +52,15 @@ def test_diagnose_suggest_apply_and_the_lines_drop(tmp_path: Path, start_daemon)
     assert periodic and abs(periodic[0]["params"]["period_s"] - 300.0) < 3.0, found["effects"]
 
     d = start_daemon(rate_hz=10.0)
-    out = d.cli("tune", "--suggest", "--model", str(fitted), "--apply", "--persist",
-                "--predict-hours", "6", timeout=120)
+    out = d.cli("tune", "--suggest", "--model", str(fitted), "--log",
+                str(tmp_path / "before.mcap"), "--apply", "--persist", "--predict-hours", "6",
+                timeout=120)
     assert out.returncode == 0, out.stderr
     assert "Suggested: resonant terms at harmonics 1-" in out.stdout
+    # the replay what-if on the diagnosed log: the reading at the first line comes down
+    what_if = out.stdout.split("own run (the replay what-if")[1].splitlines()
+    line1 = next(r for r in what_if if "(line 1)" in r).split()
+    assert float(line1[-2]) < float(line1[-1]) / 1.5, what_if
     assert "closed loop                       stable (17 models)" in out.stdout
     assert "resonant terms at" in out.stdout and "written to the config file" in out.stdout
     status = json.loads(d.cli("status", "--json").stdout)

@@ -21,15 +21,18 @@ from leveler.analysis.diagnose import BANDS_HZ, gap, residual, warmup_samples
 from leveler.analysis.drift import bands, drift, noise_periodogram, terms, verdict
 from leveler.analysis.predict import Measured, Predictor
 from leveler.analysis.spectral import REPORT_FREQS_HZ, asd_or_none
-from leveler.loop.pid import PID
+from leveler.loop.pid import PID, ControllerConfig
 from leveler.sim.pendulum import PendulumModel
 
 
-def what_if(meas: Measured, pred: Predictor, gains: tuple[float, float, float]) -> np.ndarray:
-    """The sensor reading the logged run would have shown under `gains`."""
+def what_if(meas: Measured, pred: Predictor,
+            gains: tuple[float, float, float] | ControllerConfig) -> np.ndarray:
+    """The sensor reading the logged run would have shown under `gains` (kp, ki, kd in
+    place of the logged ones), or under a whole controller config (resonant terms too)."""
     p = pred.params
-    cfg = dataclasses.replace(meas.config.controller, kp_v_per_m=gains[0],
-                              ki_v_per_m_s=gains[1], kd_v_s_per_m=gains[2])
+    cfg = gains if isinstance(gains, ControllerConfig) else dataclasses.replace(
+        meas.config.controller, kp_v_per_m=gains[0], ki_v_per_m_s=gains[1],
+        kd_v_s_per_m=gains[2])
     pid = PID(cfg.pid_config())
     pend = PendulumModel(dataclasses.replace(p.pendulum, model="linear"), meas.dt_s)
     kv = p.piezo.gain_m_per_v / p.platform.support_spacing_m

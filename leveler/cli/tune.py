@@ -11,6 +11,7 @@ from typing import Any
 from leveler.cli.common import add_socket
 from leveler.daemon.client import Client, ClientError
 from leveler.daemon.protocol import TUNE_INF_OK
+from leveler.loop.resonant import PeriodicTerms
 
 FLAG_KEYS = {"kp": "kp_v_per_m", "ki": "ki_v_per_m_s", "kd": "kd_v_s_per_m",
              "setpoint": "setpoint_m", "min_v": "output_min_v", "max_v": "output_max_v",
@@ -61,6 +62,9 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--model", default=None, metavar="FITTED.toml",
                    help="with --suggest: a model naming a periodic disturbance (`leveler "
                    "diagnose LOG` writes LOG.fitted.toml): suggest resonant terms against it")
+    p.add_argument("--log", default=None, metavar="LOG",
+                   help="with --suggest --model: also replay this log's run with the terms "
+                   "added (the replay what-if; typically the log the model was diagnosed from)")
     p.add_argument("--predict-hours", type=float, default=24.0,
                    help="with --suggest --model: hours of the model simulated for the "
                    "predicted tilt (default: %(default)s; 0: none)")
@@ -154,9 +158,47 @@ def _suggest_periodic(args: argparse.Namespace) -> dict[str, Any]:
                                 args.predict_hours * 3600.0)
     print(f"plant model from {args.model}; controller and loop rate from {config}")
     print(periodic.report(d, terms, cfg.controller, ours, theirs, pred))
+    if args.log is not None:
+        print(_replayed(args.log, args.model, terms))
     if not ours.ok:
         raise ClientError("the suggested terms miss the margins on some model (above)")
     return values
+
+
+def _replayed(log: str, model: str, terms: PeriodicTerms) -> str:
+    """The replay what-if of `log` with the terms added to its logged controller: the
+    reading at the disturbance's first lines, as logged and as predicted."""
+    from leveler.analysis.diagnose import warmup_samples
+    from leveler.analysis.predict import Predictor, load_measured
+    from leveler.analysis.replay import what_if
+    from leveler.analysis.spectral import asd_at
+    from leveler.errors import LogError
+
+    try:
+        meas = load_measured(log, model=model)
+    except LogError as exc:
+        raise ClientError(f"--log: {exc}") from None
+    if meas.controller is None:
+        raise ClientError(f"--log {log}: it does not say what its controller was (not a "
+                          "leveler log), so there is nothing to add the terms to")
+    pred = Predictor(meas.config.plant, meas, ringing=True)
+    span = slice(warmup_samples(meas, pred), len(meas.y_m))
+    with_terms = dataclasses.replace(
+        meas.controller, periodic_period_s=terms.period_s,
+        periodic_gains_v_per_m_s=terms.gains_v_per_m_s, periodic_phases_rad=terms.phases_rad,
+        periodic_radius=terms.radius)
+    fs = 1.0 / meas.dt_s
+    y = meas.y_m[span]
+    lines = [h / terms.period_s for h in range(1, 6) if h / terms.period_s * len(y) / fs >= 20]
+    if not lines:
+        return f"(--log {log}: too short to resolve the disturbance's lines)"
+    logged = asd_at(y, fs, lines)
+    replayed = asd_at(what_if(meas, pred, with_terms)[span], fs, lines)
+    out = [f"\nOn {log}'s own run (the replay what-if: its logged controller plus the terms; "
+           "the reading) [nm/rtHz]:", f"{'':<34}{'suggested':<22}as logged"]
+    out += [f"{'ASD at ' + f'{f * 1e3:.3g} mHz (line {j + 1})':<34}{a * 1e9:<22.3g}{b * 1e9:.3g}"
+            for j, (f, a, b) in enumerate(zip(lines, replayed, logged, strict=True))]
+    return "\n".join(out)
 
 
 def _suggest(args: argparse.Namespace) -> dict[str, float]:
