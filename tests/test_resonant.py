@@ -131,7 +131,10 @@ def test_designed_terms_keep_the_margins_over_the_tolerances(designed: Controlle
     greedy = periodic.design(CFG.plant, RATE, CFG.controller, 300.0, beta_rel=20.0)
     c = dataclasses.replace(designed, periodic_gains_v_per_m_s=greedy.gains_v_per_m_s,
                             periodic_phases_rad=greedy.phases_rad)
-    assert not periodic.check(CFG.plant, RATE, c).ok
+    greedy_check = periodic.check(CFG.plant, RATE, c)
+    assert not greedy_check.ok
+    assert periodic.refusal(greedy_check, periodic.check(CFG.plant, RATE, CFG.controller))
+    assert periodic.refusal(check, periodic.check(CFG.plant, RATE, CFG.controller)) == ""
 
 
 def test_a_model_names_its_periodic_disturbance() -> None:

@@ -80,6 +80,26 @@ class LoopCheck:
                 and self.phase_margin_deg >= MIN_PHASE_MARGIN_DEG)
 
 
+MARGIN_SLACK_DB = 0.5  # what the terms may cost the current loop's worst gain margin
+MARGIN_SLACK_DEG = 3.0  # and its worst phase margin
+
+
+def refusal(ours: LoopCheck, theirs: LoopCheck) -> str:
+    """Why the loop with the terms (`ours`) must not replace the current one (`theirs`),
+    or '' when it may: unstable on some model, or under the goals (6 dB, 40 deg) and
+    worse than the current loop by more than a little. A current loop that itself misses
+    the goals on the fitted model (a stand recalibrated 2 sigma off the nominal one) is the
+    PID's to fix; terms that do not lower its margins are still a gain."""
+    if not ours.stable:
+        return f"unstable on a model ({ours.worst_corner})"
+    low_gm = min(MIN_GAIN_MARGIN_DB, theirs.gain_margin_db - MARGIN_SLACK_DB)
+    low_pm = min(MIN_PHASE_MARGIN_DEG, theirs.phase_margin_deg - MARGIN_SLACK_DEG)
+    if ours.gain_margin_db < low_gm or ours.phase_margin_deg < low_pm:
+        return (f"worst margins {ours.gain_margin_db:.1f} dB, {ours.phase_margin_deg:.1f} deg "
+                f"({ours.worst_corner}), under {low_gm:.1f} dB, {low_pm:.1f} deg")
+    return ""
+
+
 def named_disturbance(params: PlantParams) -> Disturbance | None:
     """The model's periodic disturbance: a fitted effect first (what diagnose named), else
     the configured cooler; None when there is neither."""

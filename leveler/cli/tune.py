@@ -160,8 +160,13 @@ def _suggest_periodic(args: argparse.Namespace) -> dict[str, Any]:
     print(periodic.report(d, terms, cfg.controller, ours, theirs, pred))
     if args.log is not None:
         print(_replayed(args.log, args.model, terms))
-    if not ours.ok:
-        raise ClientError("the suggested terms miss the margins on some model (above)")
+    if not theirs.ok:
+        print(f"note: the current loop itself misses {periodic.MIN_GAIN_MARGIN_DB:g} dB / "
+              f"{periodic.MIN_PHASE_MARGIN_DEG:g} deg on this model; the terms are judged "
+              "against it (check the PID with `leveler tune --suggest`)")
+    why = periodic.refusal(ours, theirs)
+    if why:
+        raise ClientError(f"the suggested terms are refused: {why}")
     return values
 
 

@@ -47,7 +47,7 @@ def _groups() -> tuple[type, type]:
         tilt = ai("TILT", "rad", 12, "platform tilt the reading means")
         piezo = ai("PIEZO", "V", 3, "piezo voltage applied")
         p = ai("P", "V", 4, "PID proportional term")
-        i = ai("I", "V", 4, "PID integral term")
+        i = ai("I", "V", 4, "PID integral + resonant terms")
         d = ai("D", "V", 4, "PID derivative term")
         period_p99 = ai("PERIOD_P99", "s", 6, "loop period, 99th percentile")
         period_max = ai("PERIOD_MAX", "s", 6, "loop period, longest")

@@ -100,7 +100,7 @@ _SAMPLE_FIELDS: dict[str, tuple[str, str]] = {
     "setpoint_m": ("number", "displacement setpoint [m]"),
     "error_m": ("number", "setpoint_m - sensor_m [m]" + _NULL),
     "p_v": ("number", "PID proportional term [V]"),
-    "i_v": ("number", "PID integral term [V]"),
+    "i_v": ("number", "PID integral term, and the resonant terms when configured [V]"),
     "d_v": ("number", "PID derivative term [V]"),
     "command_v": ("number", "controller output [V]"),
     "applied_v": ("number", "voltage the actuator actually applied [V]"),
