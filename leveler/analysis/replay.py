@@ -28,11 +28,13 @@ from leveler.sim.pendulum import PendulumModel
 def what_if(meas: Measured, pred: Predictor,
             gains: tuple[float, float, float] | ControllerConfig) -> np.ndarray:
     """The sensor reading the logged run would have shown under `gains` (kp, ki, kd in
-    place of the logged ones), or under a whole controller config (resonant terms too)."""
+    place of the logged controller's), or under a whole controller config (resonant terms
+    too). The rest of the controller (filter, slew, limits) is the logged one, not the
+    --model file's, which may be another stand's or an older one."""
     p = pred.params
+    logged = meas.controller if meas.controller is not None else meas.config.controller
     cfg = gains if isinstance(gains, ControllerConfig) else dataclasses.replace(
-        meas.config.controller, kp_v_per_m=gains[0], ki_v_per_m_s=gains[1],
-        kd_v_s_per_m=gains[2])
+        logged, kp_v_per_m=gains[0], ki_v_per_m_s=gains[1], kd_v_s_per_m=gains[2])
     pid = PID(cfg.pid_config())
     pend = PendulumModel(dataclasses.replace(p.pendulum, model="linear"), meas.dt_s)
     kv = p.piezo.gain_m_per_v / p.platform.support_spacing_m
