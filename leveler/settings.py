@@ -156,6 +156,11 @@ def check_tune_values(cfg: Config, values: dict[str, float]) -> None:
         if not lo < sp < hi:
             raise ValueError(f"setpoint_m {sp:g} m is outside what the sensor reads, "
                              f"({lo:g}, {hi:g}) m ({where}); the loop could never reach it")
+    nyquist = cfg.loop.rate_hz / 2
+    if values.get("notch_frequency_hz", 0.0) >= nyquist:
+        raise ValueError(f"notch_frequency_hz {values['notch_frequency_hz']:g} Hz is at or "
+                         f"above the loop's Nyquist frequency, {nyquist:g} Hz (loop.rate_hz "
+                         f"{cfg.loop.rate_hz:g}): a sampled loop cannot notch it")
     lo, hi, where = cfg.actuator_range_v()
     for key in ("output_min_v", "output_max_v"):
         if key in values and not lo <= values[key] <= hi:
@@ -178,7 +183,8 @@ def load_config(path: str | Path) -> tuple[Config, str]:
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None
     try:
-        check_tune_values(cfg, {k: getattr(cfg.controller, k) for k in gain_limits(cfg)})
+        check_tune_values(cfg, {k: getattr(cfg.controller, k)
+                                for k in (*gain_limits(cfg), "notch_frequency_hz")})
     except ValueError as exc:
         raise ConfigError(f"{path}: controller.{exc}") from None
     return cfg, path.read_text()

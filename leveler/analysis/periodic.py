@@ -26,12 +26,13 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import control
 import numpy as np
 
-from leveler.analysis.recalibrate import knobs
+from leveler.analysis.recalibrate import Knob, knobs
 from leveler.analysis.suggest import (
     MIN_GAIN_MARGIN_DB,
     _response,
@@ -51,6 +52,7 @@ MIN_LOOP_GAIN = 10.0  # |1 + L0| at a harmonic worth a term
 MAX_HARMONICS = 30
 BETA_REL = 0.3  # each term's settling rate, in units of the fundamental (rad/s)
 CORNER_SIGMAS = 2.0
+MODE_SIGMAS = {"frequency_hz": 0.025, "gain": 0.15}  # 1 sigma, relative
 _DYNAMIC_KNOBS = ("sensor_path", "actuator_path", "natural_frequency", "q")
 
 
@@ -73,6 +75,7 @@ class LoopCheck:
     max_sensitivity: float  # max |1 / (1 + L)|: 1 / the smallest distance to -1
     corners: int  # models checked: the nominal one and every tolerance corner
     worst_corner: str
+    mode_corners: bool = False  # the corners include a mode's frequency and gain
 
     @property
     def ok(self) -> bool:
@@ -121,8 +124,18 @@ def _resonator_tf(k: float, phase: float, theta: float, radius: float,
                       [1.0, -2.0 * radius * math.cos(theta), radius * radius], dt)
 
 
+def notch_tf(c: ControllerConfig, rate_hz: float) -> control.TransferFunction | None:
+    """The notch on the reading (leveler.loop.notch), in series with every part, or None."""
+    notch = c.notch()
+    if notch is None:
+        return None
+    b, a = notch.coefficients(1.0 / rate_hz)
+    return control.tf(list(b), [1.0, *a], 1.0 / rate_hz)
+
+
 def controller_parts(c: ControllerConfig, rate_hz: float) -> list[control.TransferFunction]:
-    """The controller as a sum of small transfer functions: the PID, then each term."""
+    """The controller as a sum of small transfer functions: the PID, then each term (a
+    notch, `notch_tf`, multiplies them all)."""
     parts = [controller_tf(c.kp_v_per_m, c.ki_v_per_m_s, c.kd_v_s_per_m, c.d_filter_tau_s,
                            rate_hz)]
     terms = c.periodic_terms()
@@ -145,6 +158,9 @@ def design(params: PlantParams, rate_hz: float, c: ControllerConfig, period_s: f
     dt = 1.0 / rate_hz
     plant = plant_tf(params, rate_hz)
     pid = controller_parts(c, rate_hz)[0]
+    notch = notch_tf(c, rate_hz)
+    if notch is not None:
+        plant = notch * plant  # the terms see the notched reading, as the PID does
     w1 = 2 * math.pi / period_s
     gains: list[float] = []
     phases: list[float] = []
@@ -166,17 +182,38 @@ def design(params: PlantParams, rate_hz: float, c: ControllerConfig, period_s: f
     return PeriodicTerms(period_s, tuple(gains), tuple(phases), radius)
 
 
+def _mode_knobs(params: PlantParams) -> list[Knob]:
+    """A mode the piezo rings (`ExtraResonance` with a gain): its frequency and gain, at
+    MODE_SIGMAS (a fit's report has the uncertainties; the model file does not)."""
+    fx = params.effects.extra_resonance
+    if fx is None or not fx.gain:
+        return []
+
+    def vary(key: str) -> Callable[[PlantParams, float], PlantParams]:
+        def apply(p: PlantParams, d: float) -> PlantParams:
+            mode = p.effects.extra_resonance
+            assert mode is not None
+            moved = dataclasses.replace(mode, **{key: getattr(mode, key) * (1 + d)})
+            return dataclasses.replace(p, effects=p.effects.with_effect(moved))
+        return apply
+
+    return [Knob(f"mode_{key}", f"the mode's {key}", MODE_SIGMAS[key], vary(key))
+            for key in ("frequency_hz", "gain")]
+
+
 def _vary(params: PlantParams, corner: dict[str, float]) -> PlantParams:
-    by_name = {k.name: k for k in knobs(params, temperature_logged=False, excited=True)}
+    by_name = {k.name: k for k in (*knobs(params, temperature_logged=False, excited=True),
+                                   *_mode_knobs(params))}
     for name, d in corner.items():
         params = by_name[name].apply(params, d)
     return params
 
 
 def corners(params: PlantParams) -> list[tuple[str, PlantParams]]:
-    """The nominal model and each +-CORNER_SIGMAS corner of its dynamic tolerances."""
+    """The nominal model and each +-CORNER_SIGMAS corner of its dynamic tolerances (and of
+    a mode it names that the piezo rings)."""
     ks = [k for k in knobs(params, temperature_logged=False, excited=True)
-          if k.name in _DYNAMIC_KNOBS]
+          if k.name in _DYNAMIC_KNOBS] + _mode_knobs(params)
     out = [("nominal", params)]
     for signs in itertools.product((-1, 1), repeat=len(ks)):
         corner = {k.name: s * CORNER_SIGMAS * k.sigma for k, s in zip(ks, signs, strict=True)}
@@ -192,9 +229,14 @@ def _one(params: PlantParams, rate_hz: float, c: ControllerConfig,
     ctrl = control.ss(parts[0])
     for part in parts[1:]:
         ctrl = control.parallel(ctrl, control.ss(part))
+    notch = notch_tf(c, rate_hz)
+    if notch is not None:
+        ctrl = control.series(control.ss(notch), ctrl)
     closed = control.feedback(control.series(ctrl, control.ss(plant)), 1)
     stable = bool(np.all(np.abs(np.linalg.eigvals(closed.A)) < 1.0))
     loop = sum(_response(p, f_hz) for p in parts) * _response(plant, f_hz)
+    if notch is not None:
+        loop = loop * _response(notch, f_hz)
     gm_db, pm = margins(loop)
     return stable, gm_db, pm, float(np.max(1 / np.abs(1 + loop)))
 
@@ -221,21 +263,38 @@ def margins(loop: np.ndarray) -> tuple[float, float]:
     return gm, pm
 
 
-def check(params: PlantParams, rate_hz: float, c: ControllerConfig) -> LoopCheck:
-    """The loop `c` makes on the model and on every tolerance corner (module doc)."""
+def check(params: PlantParams, rate_hz: float, c: ControllerConfig, *,
+          nominal_only: bool = False) -> LoopCheck:
+    """The loop `c` makes on the model and on every tolerance corner (module doc); with
+    `nominal_only` on the model alone (a cheap first look for a search)."""
     terms = c.periodic_terms()
     lines = [] if terms is None else [h / terms.period_s
                                       for h in range(1, len(terms.gains_v_per_m_s) + 1)]
-    # dense around each line, never on one (|L| is infinite there)
+    notch, mode = c.notch(), params.effects.extra_resonance
+    sharp = [x.frequency_hz for x in (notch, mode) if x is not None]
+    top = rate_hz / 2 * (1 - 1e-9)
+    # dense around each line, never on one (|L| is infinite there), and over a notch or mode
     f_hz = np.unique(np.concatenate([
-        np.geomspace(1e-6, rate_hz / 2 * (1 - 1e-9), 6000),
-        *[np.linspace(f * 0.9, f * 1.1, 200) for f in lines]]))
-    results = [(label, _one(p, rate_hz, c, f_hz)) for label, p in corners(params)]
+        np.geomspace(1e-6, top, 6000),
+        *[np.linspace(f * 0.9, f * 1.1, 200) for f in lines],
+        *[np.linspace(f * 0.7, min(f * 1.3, top), 600) for f in sharp]]))
+    models = [("nominal", params)] if nominal_only else corners(params)
+    results = [(label, _one(p, rate_hz, c, f_hz)) for label, p in models]
     unstable = [label for label, r in results if not r[0]]
     worst_label = unstable[0] if unstable else max(results, key=lambda lr: lr[1][3])[0]
     return LoopCheck(not unstable, min(r[1] for _, r in results),
                      min(r[2] for _, r in results), max(r[3] for _, r in results),
-                     len(results), worst_label)
+                     len(results), worst_label, bool(_mode_knobs(params)) and not nominal_only)
+
+
+def models_line(x: LoopCheck) -> str:
+    """What the checked models were, the worst of them and the goals, for a report."""
+    mode = (f"; the mode's frequency +-{CORNER_SIGMAS * MODE_SIGMAS['frequency_hz']:.0%} and "
+            f"gain +-{CORNER_SIGMAS * MODE_SIGMAS['gain']:.0%}" if x.mode_corners else "")
+    return (f"models: the fitted one and each +-{CORNER_SIGMAS:g} sigma corner of its stated "
+            f"tolerances (sensor and actuator paths, pendulum resonance frequency and Q{mode}); "
+            f"worst: {x.worst_corner}; goals: >= {MIN_GAIN_MARGIN_DB:g} dB, "
+            f">= {MIN_PHASE_MARGIN_DEG:g} deg")
 
 
 def floor_tilt(cfg: Config, n: int, seed: int) -> np.ndarray:
@@ -272,17 +331,21 @@ class Predicted:
         return float(ratio[i]), float(self.freqs_hz[i])
 
 
+def lines_hz(period_s: float) -> list[float]:
+    """A periodic disturbance's first lines that `predict` shows (up to 100 mHz)."""
+    return [h / period_s for h in range(1, 6) if h / period_s <= 0.1]
+
+
 def predict(model: Config, current: ControllerConfig, suggested: ControllerConfig,
-            period_s: float, duration_s: float, seed: int = 1) -> Predicted:
+            lines: list[float], duration_s: float, seed: int = 1) -> Predicted:
     """Both controllers closing the loop on the model's simulated stand over the same
     disturbance realization (leveler.virtual, so its own loop, limits and ADC): the
-    true tilt's ASD at the disturbance's first lines and across 0.1-100 mHz, where the
-    record resolves them, beside the sensor floor."""
+    true tilt's ASD at `lines` [Hz] (a disturbance's, a mode's) and across 0.1-100 mHz,
+    where the record resolves them, beside the sensor floor."""
     from leveler.analysis.spectral import asd_at
     from leveler.virtual import run_virtual
 
     rate = model.loop.rate_hz
-    lines = [h / period_s for h in range(1, 6) if h / period_s <= 0.1]
     grid = [f for f in np.geomspace(1e-4, 1e-1, 31) if f * duration_s >= 20]
     freqs = np.array(lines + grid)
     runs = [run_virtual(dataclasses.replace(model, controller=c), duration_s, seed,
@@ -301,6 +364,40 @@ def _toml_list(xs: tuple[float, ...]) -> str:
     return "[" + ", ".join(_toml_float(x) for x in xs) + "]"
 
 
+def margin_rows(ours: LoopCheck, theirs: LoopCheck) -> list[str]:
+    """The suggested loop's checks beside the current one's, as report lines."""
+    rows = [
+        ("closed loop", *(("stable" if x.stable else "UNSTABLE") + f" ({x.corners} models)"
+                          for x in (ours, theirs))),
+        ("gain margin, worst", *(f"{x.gain_margin_db:.1f} dB" for x in (ours, theirs))),
+        ("phase margin, worst", *(f"{x.phase_margin_deg:.1f} deg" for x in (ours, theirs))),
+        ("peak |1 / (1 + L)|, worst", *(f"{x.max_sensitivity:.2f}" for x in (ours, theirs))),
+    ]
+    return (["", f"{'':<34}{'suggested':<22}current"]
+            + [f"{a:<34}{b:<22}{c}" for a, b, c in rows] + [models_line(ours)])
+
+
+def predicted_rows(pred: Predicted, labels: list[str]) -> list[str]:
+    """What the model predicts for the true tilt, as report lines: `labels` name the
+    prediction's first (line) frequencies, then the worst over the floor per band."""
+    lines = ["", f"Predicted true tilt on the model ({pred.duration_s / 3600:g} h simulated, "
+             "the same disturbances both ways) [nrad/rtHz]:",
+             f"{'':<34}{'suggested':<22}{'current':<22}sensor floor"]
+    for j, label in enumerate(labels):
+        lines.append(f"{label:<34}{pred.suggested[j] * 1e9:<22.3g}"
+                     f"{pred.current[j] * 1e9:<22.3g}{pred.floor[j] * 1e9:.3g}")
+    grid = pred.freqs_hz[pred.lines:]
+    for lo, hi, band in ((1e-4, 1e-2, "0.1-10 mHz"), (1e-2, 1e-1, "10-100 mHz")):
+        if not np.any((grid >= lo) & (grid <= hi)):
+            continue
+        cells = []
+        for which in ("suggested", "current"):
+            r, f = pred.worst_over_floor(which, lo, hi)
+            cells.append(f"{r:.2f}x at {_hz(f)}")
+        lines.append(f"{'worst over the floor, ' + band:<34}{cells[0]:<22}{cells[1]}")
+    return lines
+
+
 def report(d: Disturbance, terms: PeriodicTerms, c: ControllerConfig, ours: LoopCheck,
            theirs: LoopCheck, pred: Predicted | None) -> str:
     """The suggestion as config lines, its margins beside the current loop's, and what the
@@ -316,35 +413,9 @@ def report(d: Disturbance, terms: PeriodicTerms, c: ControllerConfig, ours: Loop
         f"periodic_period_s = {_toml_float(terms.period_s)}",
         f"periodic_gains_v_per_m_s = {_toml_list(terms.gains_v_per_m_s)}",
         f"periodic_phases_rad = {_toml_list(terms.phases_rad)}",
-        "",
-        f"{'':<34}{'suggested':<22}current",
     ]
-    rows = [
-        ("closed loop", *(("stable" if x.stable else "UNSTABLE") + f" ({x.corners} models)"
-                          for x in (ours, theirs))),
-        ("gain margin, worst", *(f"{x.gain_margin_db:.1f} dB" for x in (ours, theirs))),
-        ("phase margin, worst", *(f"{x.phase_margin_deg:.1f} deg" for x in (ours, theirs))),
-        ("peak |1 / (1 + L)|, worst", *(f"{x.max_sensitivity:.2f}" for x in (ours, theirs))),
-    ]
-    lines += [f"{a:<34}{b:<22}{c_}" for a, b, c_ in rows]
-    lines += [f"models: the fitted one and each +-{CORNER_SIGMAS:g} sigma corner of its "
-              "stated tolerances (sensor and actuator paths, resonance frequency, Q); "
-              f"worst: {ours.worst_corner}; goals: >= {MIN_GAIN_MARGIN_DB:g} dB, "
-              f">= {MIN_PHASE_MARGIN_DEG:g} deg"]
+    lines += margin_rows(ours, theirs)
     if pred is not None:
-        lines += ["", f"Predicted true tilt on the model ({pred.duration_s / 3600:g} h simulated, "
-                  "the same disturbances both ways) [nrad/rtHz]:",
-                  f"{'':<34}{'suggested':<22}{'current':<22}sensor floor"]
-        for j in range(pred.lines):
-            lines.append(f"{'ASD at ' + _hz(pred.freqs_hz[j]) + f' (line {j + 1})':<34}"
-                         f"{pred.suggested[j] * 1e9:<22.3g}{pred.current[j] * 1e9:<22.3g}"
-                         f"{pred.floor[j] * 1e9:.3g}")
-        for lo, hi, band in ((1e-4, 1e-2, "0.1-10 mHz"), (1e-2, 1e-1, "10-100 mHz")):
-            if not np.any((pred.freqs_hz >= lo) & (pred.freqs_hz <= hi)):
-                continue
-            cells = []
-            for which in ("suggested", "current"):
-                r, f = pred.worst_over_floor(which, lo, hi)
-                cells.append(f"{r:.2f}x at {_hz(f)}")
-            lines.append(f"{'worst over the floor, ' + band:<34}{cells[0]:<22}{cells[1]}")
+        lines += predicted_rows(pred, [f"ASD at {_hz(f)} (line {j + 1})"
+                                       for j, f in enumerate(pred.freqs_hz[:pred.lines])])
     return "\n".join(lines)

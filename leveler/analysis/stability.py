@@ -14,27 +14,31 @@ import math
 
 import numpy as np
 
+from leveler.loop.notch import Notch
 from leveler.loop.resonant import PeriodicTerms
 from leveler.sim.params import PlantParams
 from leveler.sim.pendulum import discrete_matrices
 
 
 def closed_loop_matrix(params: PlantParams, rate_hz: float, kp: float, ki: float, kd: float,
-                       d_filter_tau_s: float, terms: PeriodicTerms | None = None) -> np.ndarray:
-    """x_(n+1) = M x_n for the plant's state, then the integrator's and the derivative
-    filter's (each only with its gain non-zero, as suggest.controller_tf leaves them out),
-    then two per resonant term.
+                       d_filter_tau_s: float, terms: PeriodicTerms | None = None,
+                       notch: Notch | None = None) -> np.ndarray:
+    """x_(n+1) = M x_n for the plant's state, then the notch's two (with one), then the
+    integrator's and the derivative filter's (each only with its gain non-zero, as
+    suggest.controller_tf leaves them out), then two per resonant term.
 
-    Plant: x' = A x + b u [V], reading y = x[0] [m] (strictly proper). Controller on e = -y:
-    P: kp e; I: ki dt s with s' = s + e; D: kd (z - 1) / ((tau + dt) z - tau) on e, i.e.
-    g e + g (alpha - 1) w with w' = alpha w + e, g = kd / (tau + dt), alpha = tau / (tau + dt);
-    resonant term h (leveler.loop.resonant): (re, im)' = r rot(w_h dt) (re, im) + (dt e, 0),
-    adding k_h (cos(phase_h) re - sin(phase_h) im) to u (linear: the rail freeze ignored).
+    Plant: x' = A x + b u [V], reading y = x[0] [m] (strictly proper). The notch
+    (leveler.loop.notch, direct form II transposed) makes what the terms see, yf = b0 y + z1,
+    with z1' = b1 y + z2 - a1 yf, z2' = b2 y - a2 yf; without one yf = y. Controller on
+    e = -yf: P: kp e; I: ki dt s with s' = s + e; D: kd (z - 1) / ((tau + dt) z - tau) on
+    e, i.e. g e + g (alpha - 1) w with w' = alpha w + e, g = kd / (tau + dt),
+    alpha = tau / (tau + dt); resonant term h (leveler.loop.resonant):
+    (re, im)' = r rot(w_h dt) (re, im) + (dt e, 0), adding k_h (cos(phase_h) re -
+    sin(phase_h) im) to u (linear: the rail freeze ignored).
     """
     pe, dt = params.pendulum, 1.0 / rate_hz
     a, b = discrete_matrices(pe, dt)
     bv = b * (params.piezo.gain_m_per_v / params.platform.support_spacing_m * pe.sensor_arm_m)
-    c = np.array([1.0, 0.0, 0.0])
     g = kd / (d_filter_tau_s + dt) if kd else 0.0
     alpha = d_filter_tau_s / (d_filter_tau_s + dt)
     blocks: list[tuple[float, float]] = []  # (its state's gain into u, its pole); fed by e
@@ -44,28 +48,42 @@ def closed_loop_matrix(params: PlantParams, rate_hz: float, kp: float, ki: float
         blocks.append((g * (alpha - 1.0), alpha))
     harmonics = [] if terms is None else list(enumerate(
         zip(terms.gains_v_per_m_s, terms.phases_rad, strict=True), 1))
-    n = 3 + len(blocks) + 2 * len(harmonics)
+    nf = 0 if notch is None else 2
+    n = 3 + nf + len(blocks) + 2 * len(harmonics)
     m = np.zeros((n, n))
-    m[:3, :3] = a - np.outer(bv, (kp + g) * c)
-    for j, (gain, pole) in enumerate(blocks, start=3):
-        m[:3, j] = bv * gain  # the block's state drives u
-        m[j, :3] = -c         # fed by e = -y
-        m[j, j] = pole
+    m[:3, :3] = a
+    y = np.zeros(n)  # the reading as a row over the state
+    y[0] = 1.0
+    yf = y.copy()  # what the controller's terms see
+    if notch is not None:
+        (b0, b1, b2), (a1, a2) = notch.coefficients(dt)
+        yf = b0 * y
+        yf[3] = 1.0
+        m[3] = b1 * y - a1 * yf
+        m[3, 4] += 1.0
+        m[4] = b2 * y - a2 * yf
+    m[:3] -= np.outer(bv, (kp + g) * yf)
+    first = 3 + nf
+    for j, (gain, pole) in enumerate(blocks, start=first):
+        m[:3, j] += bv * gain  # the block's state drives u
+        m[j] -= yf             # fed by e = -yf
+        m[j, j] += pole
     for i, (h, (k, phase)) in enumerate(harmonics):
         assert terms is not None
-        j = 3 + len(blocks) + 2 * i
+        j = first + len(blocks) + 2 * i
         theta = 2.0 * math.pi * h / terms.period_s * dt
-        m[:3, j] = bv * k * math.cos(phase)
-        m[:3, j + 1] = -bv * k * math.sin(phase)
-        m[j, :3] = -dt * c
-        m[j:j + 2, j:j + 2] = terms.radius * np.array([[math.cos(theta), -math.sin(theta)],
-                                                       [math.sin(theta), math.cos(theta)]])
+        m[:3, j] += bv * k * math.cos(phase)
+        m[:3, j + 1] -= bv * k * math.sin(phase)
+        m[j] -= dt * yf
+        m[j:j + 2, j:j + 2] += terms.radius * np.array([[math.cos(theta), -math.sin(theta)],
+                                                        [math.sin(theta), math.cos(theta)]])
     return m
 
 
 def predicted_instability(params: PlantParams, rate_hz: float, kp: float, ki: float,
                           kd: float, d_filter_tau_s: float,
-                          terms: PeriodicTerms | None = None) -> str | None:
+                          terms: PeriodicTerms | None = None,
+                          notch: Notch | None = None) -> str | None:
     """Why the plant model says these gains make an unstable loop, or None if they do not.
 
     Only the closed-loop poles (microseconds): `tune` and a reload ask this before they
@@ -73,7 +91,7 @@ def predicted_instability(params: PlantParams, rate_hz: float, kp: float, ki: fl
     if not (kp or ki or kd or terms):  # no feedback: the open plant, stable as configured
         return None
     poles = np.linalg.eigvals(closed_loop_matrix(params, rate_hz, kp, ki, kd, d_filter_tau_s,
-                                                 terms))
+                                                 terms, notch))
     worst = poles[np.argmax(np.abs(poles))]
     if abs(worst) < 1.0:
         return None
@@ -83,4 +101,7 @@ def predicted_instability(params: PlantParams, rate_hz: float, kp: float, ki: fl
             f"kd {kd:g} V s/m, d_filter_tau_s {d_filter_tau_s:g} s"
             + ("" if terms is None else
                f", and {len(terms.gains_v_per_m_s)} resonant terms at the harmonics of "
-               f"{terms.period_s:g} s"))
+               f"{terms.period_s:g} s")
+            + ("" if notch is None else
+               f", and a notch at {notch.frequency_hz:g} Hz (Q {notch.q:g}, depth "
+               f"{notch.depth:g})"))

@@ -55,6 +55,7 @@ from pathlib import Path
 import control
 import numpy as np
 
+from leveler.sim.effects import ExtraResonance
 from leveler.sim.params import PlantParams
 from leveler.sim.pendulum import discrete_matrices
 
@@ -88,14 +89,24 @@ class Suggestion:
 
 
 def plant_tf(params: PlantParams, rate_hz: float) -> control.TransferFunction:
-    """Piezo volts -> sensor metres, discretized at dt = 1 / rate_hz as the simulator steps it."""
+    """Piezo volts -> sensor metres, discretized at dt = 1 / rate_hz as the simulator steps it:
+    the pendulum, and an extra resonance the model names that the piezo rings."""
     if not rate_hz > 0:
         raise ValueError(f"rate_hz must be > 0, got {rate_hz}")
     pe = params.pendulum
     a, b = discrete_matrices(pe, 1.0 / rate_hz)
     volts = params.piezo.gain_m_per_v / params.platform.support_spacing_m * pe.sensor_arm_m
     sys = control.ss(a, b[:, None] * volts, [[1.0, 0.0, 0.0]], [[0.0]], 1.0 / rate_hz)
-    return control.minreal(control.tf(sys), verbose=False)
+    tf = control.minreal(control.tf(sys), verbose=False)
+    for fx in params.effects.of("response"):
+        if isinstance(fx, ExtraResonance) and fx.gain:
+            # in parallel, on the piezo's tilt, with the pendulum's timing (sim's Plant.step)
+            num, den = fx.discrete(1.0 / rate_hz)
+            num[0] = 0.0  # strictly proper (ZOH): rounding leaves ~1e-17
+            k = (params.piezo.gain_m_per_v / params.platform.support_spacing_m * fx.gain
+                 * pe.sensor_arm_m * pe.amplification)
+            tf = tf + control.tf(list(k * num), list(den), 1.0 / rate_hz)
+    return tf
 
 
 def controller_tf(kp: float, ki: float, kd: float, d_filter_tau_s: float,

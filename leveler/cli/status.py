@@ -80,6 +80,9 @@ def format_status(st: dict[str, Any]) -> str:
         *([f"            resonant terms at harmonics 1-{len(c['periodic_gains_v_per_m_s'])} "
            f"of {c['periodic_period_s']:g} s (docs/replay.md)"]
           if c.get("periodic_gains_v_per_m_s") and c.get("periodic_period_s") else []),
+        *([f"            notch on the reading at {c['notch_frequency_hz']:.4g} Hz, "
+           f"Q {c['notch_q']:g}, depth {c['notch_depth']:g}"]
+          if c.get("notch_frequency_hz") else []),
         f"loop        {lp['rate_hz']:g} Hz, {lp['cycles']} cycles, period p50/p99/max "
         f"{lp['period_p50_s'] * 1e3:.2f}/{lp['period_p99_s'] * 1e3:.2f}/"
         f"{lp['period_max_s'] * 1e3:.2f} ms, overruns {lp['overruns']}",

@@ -37,6 +37,9 @@ TUNE_KEYS: dict[str, float | None] = {
     "output_min_v": None,
     "output_max_v": None,
     "slew_v_per_s": None,
+    "notch_frequency_hz": 0.0,  # 0: no notch (leveler.loop.notch)
+    "notch_q": 0.0,
+    "notch_depth": 0.0,
 }
 #: tune arguments that may be infinite (the string "inf" on the wire), as in the config
 TUNE_INF_OK = ("slew_v_per_s",)

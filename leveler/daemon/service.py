@@ -272,7 +272,7 @@ class Daemon:
         """Why the plant model predicts `c`'s gains unstable at the running rate, or None."""
         return predicted_instability(plant, self.cfg.loop.rate_hz, c.kp_v_per_m,
                                      c.ki_v_per_m_s, c.kd_v_s_per_m, c.d_filter_tau_s,
-                                     c.periodic_terms())
+                                     c.periodic_terms(), c.notch())
 
     def _unstable_at_start(self) -> str | None:
         """Why the plant model says the configured gains make an unstable loop, or None.
@@ -292,7 +292,7 @@ class Daemon:
         """ProtocolError if `new` changes the loop's gains to ones the plant model predicts
         unstable at the running rate (a setpoint or limit change is never refused here)."""
         gains = ("kp_v_per_m", "ki_v_per_m_s", "kd_v_s_per_m", "d_filter_tau_s",
-                 *PERIODIC_KEYS)
+                 *PERIODIC_KEYS, "notch_frequency_hz", "notch_q", "notch_depth")
         if all(getattr(old, k) == getattr(new, k) for k in gains):
             return
         why = self._instability(plant, new)
@@ -472,6 +472,8 @@ class Daemon:
             pid.set_gains(gains)
         if new.periodic_terms() != old.periodic_terms():
             pid.set_periodic(new.periodic_terms())
+        if new.notch() != old.notch():
+            pid.set_notch(new.notch())
         self.cfg = dataclasses.replace(self.cfg, controller=new)
         if changed:
             self.loop.emit("tune", reason, t, **changed)

@@ -16,6 +16,9 @@ Design choices, and why:
 * Optional resonant terms (``PIDConfig.periodic``, leveler.loop.resonant) are the
   integral's counterpart for a periodic disturbance; their output is reported within
   ``i_v`` (both are the controller's internal models), so p + i + d stays the command.
+* An optional notch (``PIDConfig.notch``, leveler.loop.notch) filters the reading before
+  all three terms: the loop stops acting at one frequency (a mode the model lacks). The
+  logged ``error_m`` is the setpoint minus the filtered reading, what the terms acted on.
 * :meth:`PID.update` runs at up to 1 kHz in Python next to a simulator, so it is plain
   float arithmetic on slotted attributes, allocating only the returned record.
 """
@@ -25,6 +28,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 
+from leveler.loop.notch import Notch, NotchFilter
 from leveler.loop.resonant import PeriodicTerms, Resonators
 from leveler.typed_config import non_negative, positive
 
@@ -80,6 +84,7 @@ class PIDConfig:
     setpoint_ramp_m_per_s: float = math.inf  # setpoint changes ramp at this rate
     tracking_time_s: float = 0.0  # back-calculation time constant; 0 = derived from the gains
     periodic: PeriodicTerms | None = None  # resonant terms for a periodic disturbance
+    notch: Notch | None = None  # on the reading, before the terms
 
     def __post_init__(self) -> None:
         _require_finite("output_min_v", self.output_min_v)
@@ -115,6 +120,9 @@ class ControllerConfig:
     periodic_gains_v_per_m_s: tuple[float, ...] = ()  # harmonics 1, 2, ... of the period
     periodic_phases_rad: tuple[float, ...] = ()
     periodic_radius: float = field(default=1.0, metadata={"gt": 0.0, "le": 1.0})
+    notch_frequency_hz: float = non_negative(0.0)  # 0: no notch on the reading
+    notch_q: float = positive(2.0)
+    notch_depth: float = field(default=0.0, metadata={"ge": 0.0, "lt": 1.0})
 
     def __post_init__(self) -> None:
         if not self.output_min_v < self.output_max_v:
@@ -135,6 +143,11 @@ class ControllerConfig:
         return PeriodicTerms(self.periodic_period_s, tuple(self.periodic_gains_v_per_m_s),
                              tuple(self.periodic_phases_rad), self.periodic_radius)
 
+    def notch(self) -> Notch | None:
+        if not self.notch_frequency_hz > 0:
+            return None
+        return Notch(self.notch_frequency_hz, self.notch_q, self.notch_depth)
+
     def pid_config(self) -> PIDConfig:
         return PIDConfig(
             gains=PIDGains(self.kp_v_per_m, self.ki_v_per_m_s, self.kd_v_s_per_m),
@@ -146,6 +159,7 @@ class ControllerConfig:
             setpoint_ramp_m_per_s=self.setpoint_ramp_m_per_s,
             tracking_time_s=self.tracking_time_s,
             periodic=self.periodic_terms(),
+            notch=self.notch(),
         )
 
 
@@ -194,10 +208,12 @@ class PID:
         "_ki",
         "_kp",
         "_lo",
+        "_notch",
         "_out",
         "_prev",
         "_r",
         "_ramp",
+        "_raw",
         "_res",
         "_res_wait_s",
         "_slew",
@@ -227,6 +243,8 @@ class PID:
         self._r = 0.0  # the resonant terms' output in the last update
         self._res = None if config.periodic is None else Resonators(config.periodic)
         self._res_wait_s = 0.0  # until the resonant terms are fed (after an engage)
+        self._notch: NotchFilter | None = None  # made at the first update, which knows dt
+        self._raw = 0.0  # the last reading before the notch (while there is one)
 
     @property
     def config(self) -> PIDConfig:
@@ -265,6 +283,14 @@ class PID:
             raise ValueError(f"dt_s must be finite and > 0, got {dt_s!r}")
         if not -_INF < measurement_m < _INF:
             raise ValueError(f"measurement_m must be finite, got {measurement_m!r}")
+        notch = self._config.notch
+        if notch is not None:
+            self._raw = measurement_m
+            filt = self._notch
+            if filt is None or self._prev is None:
+                filt = self._notch = NotchFilter(notch, dt_s)
+                filt.seed(measurement_m)
+            measurement_m = filt.step(measurement_m, dt_s)
 
         sp = self._sp
         target = self._target
@@ -364,6 +390,24 @@ class PID:
         self._res = None if terms is None else Resonators(terms)
         self._apply(replace(self._config, periodic=terms))
 
+    def set_notch(self, notch: Notch | None) -> None:
+        """Switch the notch on, off or to another one without a bump: the next update starts
+        the new filter as if it had seen that reading forever (so it passes it unchanged);
+        the integral is re-solved, as in `set_gains`, and the derivative continued, from
+        the last reading unfiltered."""
+        old = self._config.notch
+        if notch == old:
+            return
+        self._apply(replace(self._config, notch=notch))
+        self._notch = None
+        if self._prev is None:  # not started: the first update seeds everything
+            return
+        raw = self._prev if old is None else self._raw
+        err = self._sp - raw
+        self._i = self._u - self._r - self._kp * err + self._kd * self._df
+        self._err = err
+        self._prev = raw  # the derivative goes on from the reading the new filter passes
+
     def set_setpoint(self, setpoint_m: float) -> None:
         """Set the target; the effective setpoint ramps toward it in later updates."""
         self._apply(replace(self._config, setpoint_m=setpoint_m))
@@ -396,6 +440,8 @@ class PID:
             self._r = 0.0
             self._res_wait_s = ENGAGE_SETTLE_PERIODS * self._config.periodic.period_s
         self._prev = measurement_m
+        self._raw = measurement_m
+        self._notch = None  # restarted from this reading by the next update
         self._df = 0.0
         self._err = error
         self._out = out

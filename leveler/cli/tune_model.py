@@ -1,0 +1,158 @@
+"""`leveler tune --suggest --model FITTED.toml`: controller additions against what a fitted
+model names (a notch for a mode, resonant terms for a periodic disturbance), each checked
+over the model's tolerances, with what a simulated run of the model predicts they do."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+from leveler.daemon.client import Client, ClientError
+from leveler.loop.pid import ControllerConfig
+from leveler.loop.resonant import PeriodicTerms
+from leveler.settings import Config
+
+
+def running_config(args: argparse.Namespace) -> str:
+    """--config, else the running daemon's config file, else config/sim.toml."""
+    if args.config is not None:
+        return str(args.config)
+    try:
+        with Client(args.socket) as client, client.reading():
+            return str(client.request("status")["status"]["config_path"])
+    except ClientError:
+        return "config/sim.toml"
+
+
+def suggest_from_model(args: argparse.Namespace) -> dict[str, Any]:
+    """Print what the model's named effects call for; returns it as tune values (on top of
+    the running config's controller and at its loop rate). A mode is answered first, so
+    resonant terms are designed on the loop with its notch."""
+    from leveler.analysis import notch, periodic
+    from leveler.settings import load_config
+
+    config = running_config(args)
+    cfg, _ = load_config(Path(config))
+    model, _ = load_config(Path(args.model))
+    mode = notch.named_mode(model.plant)
+    d = periodic.named_disturbance(model.plant)
+    if mode is None and d is None:
+        raise ClientError(f"--model {args.model}: it names neither a periodic disturbance (a "
+                          "[plant.effects.periodic_disturbance], or a [plant.cooler] with a "
+                          "peak_to_peak_rad) nor a mode ([plant.effects.extra_resonance]); "
+                          "`leveler diagnose LOG` writes them when it finds them")
+    at_rate = dataclasses.replace(model, loop=cfg.loop)
+    print(f"plant model from {args.model}; controller and loop rate from {config}")
+    values: dict[str, Any] = {}
+    c = cfg.controller
+    if mode is not None:
+        values |= _suggest_notch(args, at_rate, c)
+        c = dataclasses.replace(c, **values)
+    if d is not None:
+        if values:
+            print()
+        values |= _suggest_periodic(args, at_rate, c, d)
+    return values
+
+
+def _suggest_notch(args: argparse.Namespace, model: Config,
+                   c: ControllerConfig) -> dict[str, Any]:
+    from leveler.analysis import notch, periodic
+
+    try:
+        design = notch.design(model.plant, model.loop.rate_hz, c)
+    except ValueError as exc:
+        raise ClientError(f"--suggest --model: {exc}") from None
+    why_not = notch.not_needed(design)
+    if why_not:
+        print(f"The model names a mode: {notch.mode_text(design.mode)}.\n{why_not}")
+        return {}
+    pred = None
+    if args.predict_hours > 0:
+        pred = periodic.predict(model, c, design.controller, [design.mode.frequency_hz],
+                                args.predict_hours * 3600.0)
+    print(notch.report(design, pred))
+    if args.log is not None:
+        print(f"(--log {args.log}: the replay what-if shows the reading, where a notch leaves "
+              "the mode by design, as the table stops following it; the true tilt above is "
+              "what it changes)")
+    why = periodic.refusal(design.ours, design.theirs)
+    if why:
+        raise ClientError(f"the suggested notch is refused: {why}")
+    return notch.values(design)
+
+
+def _suggest_periodic(args: argparse.Namespace, model: Config, c: ControllerConfig,
+                      d: Any) -> dict[str, Any]:
+    """Print resonant terms against the model's periodic disturbance; returns them as tune
+    values."""
+    from leveler.analysis import periodic
+
+    rate = model.loop.rate_hz
+    try:
+        terms = periodic.design(model.plant, rate, c, d.period_s)
+    except ValueError as exc:
+        raise ClientError(f"--suggest --model: {exc}") from None
+    values = {"periodic_period_s": terms.period_s,
+              "periodic_gains_v_per_m_s": list(terms.gains_v_per_m_s),
+              "periodic_phases_rad": list(terms.phases_rad),
+              "periodic_radius": terms.radius}
+    new = dataclasses.replace(c, **{k: tuple(v) if isinstance(v, list) else v
+                                    for k, v in values.items()})
+    ours = periodic.check(model.plant, rate, new)
+    theirs = periodic.check(model.plant, rate, c)
+    pred = None
+    if args.predict_hours > 0:
+        pred = periodic.predict(model, c, new, periodic.lines_hz(d.period_s),
+                                args.predict_hours * 3600.0)
+    print(periodic.report(d, terms, c, ours, theirs, pred))
+    if args.log is not None:
+        print(_replayed(args.log, args.model, terms))
+    if not theirs.ok:
+        print(f"note: the current loop itself misses {periodic.MIN_GAIN_MARGIN_DB:g} dB / "
+              f"{periodic.MIN_PHASE_MARGIN_DEG:g} deg on this model; the terms are judged "
+              "against it (check the PID with `leveler tune --suggest`)")
+    why = periodic.refusal(ours, theirs)
+    if why:
+        raise ClientError(f"the suggested terms are refused: {why}")
+    return values
+
+
+def _replayed(log: str, model: str, terms: PeriodicTerms) -> str:
+    """The replay what-if of `log` with the terms added to its logged controller: the
+    reading at the disturbance's first lines, as logged and as predicted."""
+    from leveler.analysis.diagnose import warmup_samples
+    from leveler.analysis.predict import Predictor, load_measured
+    from leveler.analysis.replay import what_if
+    from leveler.analysis.spectral import asd_at
+    from leveler.errors import LogError
+
+    try:
+        meas = load_measured(log, model=model)
+    except LogError as exc:
+        raise ClientError(f"--log: {exc}") from None
+    if meas.controller is None:
+        raise ClientError(f"--log {log}: it does not say what its controller was (not a "
+                          "leveler log), so there is nothing to add the terms to")
+    pred = Predictor(meas.config.plant, meas, ringing=True)
+    span = slice(warmup_samples(meas, pred), len(meas.y_m))
+    with_terms = dataclasses.replace(
+        meas.controller, periodic_period_s=terms.period_s,
+        periodic_gains_v_per_m_s=terms.gains_v_per_m_s, periodic_phases_rad=terms.phases_rad,
+        periodic_radius=terms.radius)
+    fs = 1.0 / meas.dt_s
+    y = meas.y_m[span]
+    lines = [h / terms.period_s for h in range(1, 6) if h / terms.period_s * len(y) / fs >= 20]
+    if not lines:
+        return f"(--log {log}: too short to resolve the disturbance's lines)"
+    logged = asd_at(y, fs, lines)
+    replayed = asd_at(what_if(meas, pred, with_terms)[span], fs, lines)
+    out = [f"\nOn {log}'s own run (the replay what-if: its logged controller plus the terms; "
+           "the reading) [nm/rtHz]:", f"{'':<34}{'suggested':<22}as logged"]
+    out += [f"{'ASD at ' + f'{f * 1e3:.3g} mHz (line {j + 1})':<34}{a * 1e9:<22.3g}{b * 1e9:.3g}"
+            for j, (f, a, b) in enumerate(zip(lines, replayed, logged, strict=True))]
+    return "\n".join(out)
+
+
