@@ -116,6 +116,7 @@ def test_a_real_client_sees_the_logs_topics_events_and_a_running_asd(start_daemo
     d.stop()
 
 
+@pytest.mark.slow  # 16 s of a stalled client (make test-slow); the other tests here cover the view
 def test_a_client_that_never_reads_costs_bounded_memory(start_daemon: Any) -> None:
     d = live_daemon(start_daemon, loop_hz=1000.0, rate=1000.0)
     address = url(d)

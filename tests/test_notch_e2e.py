@@ -51,7 +51,7 @@ def test_diagnose_suggest_apply_and_the_mode_leaves_the_tilt(tmp_path: Path, sta
 
     d = start_daemon(rate_hz=10.0, edit=lambda text: text + MODE)
     out = d.cli("tune", "--suggest", "--model", str(fitted), "--apply", "--persist",
-                "--predict-hours", "0.5", timeout=120)
+                "--predict-hours", "0", timeout=120)
     assert out.returncode == 0, out.stderr
     assert "Suggested: a notch on the reading at 1.5" in out.stdout, out.stdout
     assert "written to the config file" in out.stdout
