@@ -33,7 +33,9 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         "periodic disturbance (a fitted periodic_disturbance, else its [plant.cooler]) gets "
         "resonant terms that cancel it. Each comes with its margins over the model's "
         "tolerances and the true tilt a simulated day predicts; --apply switches it on "
-        "bumplessly, --persist also writes it to the config file.")
+        "bumplessly, --persist also writes it to the config file. A fitted temperature "
+        "coupling gets the most a temperature feedforward could buy against the sensor floor "
+        "(told, not applied: the daemon reads no temperature).")
     p.add_argument("--kp", type=float, help="proportional gain [V/m]")
     p.add_argument("--ki", type=float, help="integral gain [V/(m s)]")
     p.add_argument("--kd", type=float, help="derivative gain [V s/m]")
@@ -66,9 +68,10 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--apply", action="store_true", help="with --suggest: send the proposal to "
                    "the daemon")
     p.add_argument("--model", default=None, metavar="FITTED.toml",
-                   help="with --suggest: a model naming a mode or a periodic disturbance "
-                   "(`leveler diagnose LOG` writes LOG.fitted.toml): suggest a notch or "
-                   "resonant terms against it")
+                   help="with --suggest: a model naming a mode, a periodic disturbance or a "
+                   "temperature coupling (`leveler diagnose LOG` writes LOG.fitted.toml): "
+                   "suggest a notch or resonant terms against it, or tell what feedforward "
+                   "could buy")
     p.add_argument("--log", default=None, metavar="LOG",
                    help="with --suggest --model: also replay this log's run with the terms "
                    "added (the replay what-if; typically the log the model was diagnosed from)")

@@ -1,6 +1,7 @@
 """`leveler tune --suggest --model FITTED.toml`: controller additions against what a fitted
 model names (a notch for a mode, resonant terms for a periodic disturbance), each checked
-over the model's tolerances, with what a simulated run of the model predicts they do."""
+over the model's tolerances, with what a simulated run of the model predicts they do; and,
+for a temperature coupling, what a feedforward could buy (leveler.analysis.feedforward)."""
 
 from __future__ import annotations
 
@@ -30,7 +31,7 @@ def suggest_from_model(args: argparse.Namespace) -> dict[str, Any]:
     """Print what the model's named effects call for; returns it as tune values (on top of
     the running config's controller and at its loop rate). A mode is answered first, so
     resonant terms are designed on the loop with its notch."""
-    from leveler.analysis import notch, periodic
+    from leveler.analysis import feedforward, notch, periodic
     from leveler.settings import load_config
 
     config = running_config(args)
@@ -38,23 +39,36 @@ def suggest_from_model(args: argparse.Namespace) -> dict[str, Any]:
     model, _ = load_config(Path(args.model))
     mode = notch.named_mode(model.plant)
     d = periodic.named_disturbance(model.plant)
-    if mode is None and d is None:
-        raise ClientError(f"--model {args.model}: it names neither a periodic disturbance (a "
+    coupled = model.plant.effects.temperature_coupling is not None
+    if mode is None and d is None and not coupled:
+        raise ClientError(f"--model {args.model}: it names no periodic disturbance (a "
                           "[plant.effects.periodic_disturbance], or a [plant.cooler] with a "
-                          "peak_to_peak_rad) nor a mode ([plant.effects.extra_resonance]); "
-                          "`leveler diagnose LOG` writes them when it finds them")
+                          "peak_to_peak_rad), no mode ([plant.effects.extra_resonance]) and no "
+                          "temperature coupling; `leveler diagnose LOG` writes them when it "
+                          "finds them")
     at_rate = dataclasses.replace(model, loop=cfg.loop)
     print(f"plant model from {args.model}; controller and loop rate from {config}")
     values: dict[str, Any] = {}
     c = cfg.controller
     if mode is not None:
         values |= _suggest_notch(args, at_rate, c)
-        c = dataclasses.replace(c, **values)
+        c = dataclasses.replace(c, **_tuples(values))
     if d is not None:
         if values:
             print()
         values |= _suggest_periodic(args, at_rate, c, d)
+    if coupled and args.predict_hours > 0:  # what feedforward could buy: told, not applied
+        print()
+        bound = feedforward.bound(dataclasses.replace(
+            at_rate, controller=dataclasses.replace(c, **_tuples(values))),
+            args.predict_hours * 3600.0)
+        print(feedforward.report(feedforward.temperature_paths(model.plant), bound))
     return values
+
+
+def _tuples(values: dict[str, Any]) -> dict[str, Any]:
+    """Tune values (lists on the wire) as controller config fields (tuples)."""
+    return {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
 
 
 def _suggest_notch(args: argparse.Namespace, model: Config,
@@ -93,14 +107,15 @@ def _suggest_periodic(args: argparse.Namespace, model: Config, c: ControllerConf
     rate = model.loop.rate_hz
     try:
         terms = periodic.design(model.plant, rate, c, d.period_s)
-    except ValueError as exc:
-        raise ClientError(f"--suggest --model: {exc}") from None
+    except ValueError as exc:  # said, and the rest of the model still answered
+        print(f"The model names a periodic disturbance: {d.source}, period {d.period_s:g} s. "
+              f"No resonant terms: {exc}.")
+        return {}
     values = {"periodic_period_s": terms.period_s,
               "periodic_gains_v_per_m_s": list(terms.gains_v_per_m_s),
               "periodic_phases_rad": list(terms.phases_rad),
               "periodic_radius": terms.radius}
-    new = dataclasses.replace(c, **{k: tuple(v) if isinstance(v, list) else v
-                                    for k, v in values.items()})
+    new = dataclasses.replace(c, **_tuples(values))
     ours = periodic.check(model.plant, rate, new)
     theirs = periodic.check(model.plant, rate, c)
     pred = None
