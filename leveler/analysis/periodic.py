@@ -364,6 +364,13 @@ def _toml_list(xs: tuple[float, ...]) -> str:
     return "[" + ", ".join(_toml_float(x) for x in xs) + "]"
 
 
+def terms_toml(terms: PeriodicTerms) -> list[str]:
+    """The terms as the [controller] lines a config holds."""
+    return ["[controller]", f"periodic_period_s = {_toml_float(terms.period_s)}",
+            f"periodic_gains_v_per_m_s = {_toml_list(terms.gains_v_per_m_s)}",
+            f"periodic_phases_rad = {_toml_list(terms.phases_rad)}"]
+
+
 def margin_rows(ours: LoopCheck, theirs: LoopCheck) -> list[str]:
     """The suggested loop's checks beside the current one's, as report lines."""
     rows = [
@@ -409,10 +416,7 @@ def report(d: Disturbance, terms: PeriodicTerms, c: ControllerConfig, ours: Loop
         f"Suggested: resonant terms at harmonics 1-{n} ({_hz(1 / d.period_s)} to "
         f"{_hz(n / d.period_s)}) added to the PID (kp {c.kp_v_per_m:g} V/m, "
         f"ki {c.ki_v_per_m_s:g} V/(m s), kd {c.kd_v_s_per_m:g} V s/m):",
-        "[controller]",
-        f"periodic_period_s = {_toml_float(terms.period_s)}",
-        f"periodic_gains_v_per_m_s = {_toml_list(terms.gains_v_per_m_s)}",
-        f"periodic_phases_rad = {_toml_list(terms.phases_rad)}",
+        *terms_toml(terms),
     ]
     lines += margin_rows(ours, theirs)
     if pred is not None:

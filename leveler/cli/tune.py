@@ -7,7 +7,7 @@ import math
 from pathlib import Path
 
 from leveler.cli.common import add_socket
-from leveler.cli.tune_model import running_config, suggest_from_model
+from leveler.cli.tune_model import retrack, running_config, suggest_from_model
 from leveler.daemon.client import Client, ClientError
 from leveler.daemon.protocol import TUNE_INF_OK
 
@@ -75,6 +75,11 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--log", default=None, metavar="LOG",
                    help="with --suggest --model: also replay this log's run with the terms "
                    "added (the replay what-if; typically the log the model was diagnosed from)")
+    p.add_argument("--retrack", default=None, metavar="LOG",
+                   help="re-estimate the period of the running resonant terms from a recent "
+                   "log's command (the loop drives the piezo against the disturbance at its "
+                   "true period) and re-design them there if it drifted by more than 0.2 %%; "
+                   "with --apply / --persist as for --suggest")
     p.add_argument("--predict-hours", type=float, default=24.0,
                    help="with --suggest --model: hours of the model simulated for the "
                    "predicted tilt (default: %(default)s; 0: none)")
@@ -101,10 +106,13 @@ def _shown(value: float | None) -> str:
 def run(args: argparse.Namespace) -> int:
     values = {key: _checked(flag, key, getattr(args, flag)) for flag, key in FLAG_KEYS.items()
               if getattr(args, flag) is not None}
-    if args.model is not None and not args.suggest:
-        raise ClientError("--model goes with --suggest")
-    if args.suggest:
-        values.update(suggest_from_model(args) if args.model is not None else _suggest(args))
+    if args.model is not None and not (args.suggest or args.retrack):
+        raise ClientError("--model goes with --suggest (or --retrack)")
+    if args.suggest and args.retrack:
+        raise ClientError("--retrack LOG re-designs the running terms; give it without --suggest")
+    if args.suggest or args.retrack:
+        values.update(retrack(args) if args.retrack else suggest_from_model(args)
+                      if args.model is not None else _suggest(args))
         if not args.apply:
             return 0
         if not values:

@@ -171,3 +171,65 @@ def _replayed(log: str, model: str, terms: PeriodicTerms) -> str:
     return "\n".join(out)
 
 
+
+
+MIN_DRIFT_REL = 0.002  # a retracked period this close to the terms' keeps them
+
+
+def retrack(args: argparse.Namespace) -> dict[str, Any]:
+    """Print the period the running terms' disturbance has in `args.retrack`'s command and,
+    when it drifted, the terms re-designed there (on the running PID, the running config's
+    plant model or --model's); returns them as tune values ({} when they stay)."""
+    from leveler.analysis import periodic
+    from leveler.analysis import retrack as rt
+    from leveler.errors import LogError
+    from leveler.log.reader import read_log
+    from leveler.settings import load_config
+
+    config = running_config(args)
+    cfg, _ = load_config(Path(config))
+    model = cfg if args.model is None else load_config(Path(args.model))[0]
+    c = cfg.controller
+    terms = c.periodic_terms()
+    if terms is None:
+        raise ClientError(f"{config}: the controller has no resonant terms to retrack (no "
+                          "[controller] periodic_*); `leveler tune --suggest --model` adds them")
+    try:
+        samples = read_log(args.retrack).samples
+    except (LogError, OSError) as exc:
+        raise ClientError(f"--retrack: {exc}") from None
+    span = rt.last_engaged(samples.get("state", []))
+    if span.stop - span.start < 2:
+        raise ClientError(f"--retrack {args.retrack}: the loop was never engaged in it")
+    try:
+        track = rt.estimate_period(samples["t_s"][span], samples["applied_v"][span],
+                                   terms.period_s)
+    except ValueError as exc:
+        raise ClientError(f"--retrack {args.retrack}: {exc}") from None
+    print(f"controller and loop rate from {config}; plant model from "
+          f"{config if args.model is None else args.model}")
+    print(f"{args.retrack}: {rt.describe(track, terms.period_s)}.")
+    drift = rt.drift_rel(track, terms.period_s)
+    if not track.clear or track.at_edge:
+        print("The terms stay as they are.")
+        return {}
+    if abs(drift) < MIN_DRIFT_REL:
+        print(f"Within {MIN_DRIFT_REL:.1%} of the terms' period: they stay as they are.")
+        return {}
+    rate = cfg.loop.rate_hz
+    try:
+        new = periodic.design(model.plant, rate, c, track.period_s)
+    except ValueError as exc:
+        raise ClientError(f"--retrack: {exc}") from None
+    values = {"periodic_period_s": new.period_s,
+              "periodic_gains_v_per_m_s": list(new.gains_v_per_m_s),
+              "periodic_phases_rad": list(new.phases_rad), "periodic_radius": terms.radius}
+    ours = periodic.check(model.plant, rate, dataclasses.replace(c, **_tuples(values)))
+    theirs = periodic.check(model.plant, rate, c)
+    print(f"Re-designed: resonant terms at harmonics 1-{len(new.gains_v_per_m_s)} of "
+          f"{new.period_s:.5g} s (were {len(terms.gains_v_per_m_s)} of {terms.period_s:g} s):")
+    print("\n".join(periodic.terms_toml(new) + periodic.margin_rows(ours, theirs)))
+    why = periodic.refusal(ours, theirs)
+    if why:
+        raise ClientError(f"the re-designed terms are refused: {why}")
+    return values
