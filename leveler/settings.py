@@ -137,6 +137,7 @@ def gain_limits(cfg: Config) -> dict[str, float]:
     span, dt = hi - lo, 1.0 / cfg.loop.rate_hz
     return {"kp_v_per_m": span / PLAUSIBLE_ERROR_M,
             "ki_v_per_m_s": span / (PLAUSIBLE_ERROR_M * dt),
+            "ki2_v_per_m_s2": span / (PLAUSIBLE_ERROR_M * dt * dt),
             "kd_v_s_per_m": span * dt / PLAUSIBLE_ERROR_M}
 
 

@@ -196,7 +196,7 @@ class _Kernel:
     def unsupported(vs: VirtualStand) -> str:
         """Why the kernel cannot run this stand's cycles ('' when it can): it knows the plain
         simulated stand, one conversion a cycle, no effect stepped sample by sample and a PID
-        without a notch."""
+        without a notch or a double integral."""
         sim = vs.stand.sensor
         if not isinstance(sim, SimulatedStand) or vs.loop.actuator is not sim:
             return "not the plain simulated stand (another driver, or a wrapped actuator)"
@@ -211,6 +211,8 @@ class _Kernel:
             return "plant and loop steps differ"
         if vs.loop.pid.config.notch is not None:
             return "a notch on the reading"
+        if vs.loop.pid.config.gains.ki2:
+            return "a double integral"
         return ""
 
     # The state's names here are the objects' own, private ones: this class is the one place
@@ -222,7 +224,7 @@ class _Kernel:
         return (loop.state in (IDLE, ENGAGED) and loop.wave is None
                 and not (loop._in_a_row or loop._unreported or loop._bad_in_a_row)
                 and (loop.state == IDLE or loop.pid._prev is not None)
-                and loop.pid.config.notch is None
+                and loop.pid.config.notch is None and not loop.pid.config.gains.ki2
                 and not self.sim._unplugged)
 
     def advance(self, n: int) -> None:

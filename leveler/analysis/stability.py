@@ -22,7 +22,7 @@ from leveler.sim.pendulum import discrete_matrices
 
 def closed_loop_matrix(params: PlantParams, rate_hz: float, kp: float, ki: float, kd: float,
                        d_filter_tau_s: float, terms: PeriodicTerms | None = None,
-                       notch: Notch | None = None) -> np.ndarray:
+                       notch: Notch | None = None, ki2: float = 0.0) -> np.ndarray:
     """x_(n+1) = M x_n for the plant's state, then the notch's two (with one), then the
     integrator's and the derivative filter's (each only with its gain non-zero, as
     suggest.controller_tf leaves them out), then two per resonant term.
@@ -30,7 +30,9 @@ def closed_loop_matrix(params: PlantParams, rate_hz: float, kp: float, ki: float
     Plant: x' = A x + b u [V], reading y = x[0] [m] (strictly proper). The notch
     (leveler.loop.notch, direct form II transposed) makes what the terms see, yf = b0 y + z1,
     with z1' = b1 y + z2 - a1 yf, z2' = b2 y - a2 yf; without one yf = y. Controller on
-    e = -yf: P: kp e; I: ki dt s with s' = s + e; D: kd (z - 1) / ((tau + dt) z - tau) on
+    e = -yf: P: kp e; I: ki dt s with s' = s + e (with a double integral, I is the integral
+    in volts, i' = i + ki dt e + ki2 dt s1', where the error's integral s1' = s1 + dt e
+    is one more state); D: kd (z - 1) / ((tau + dt) z - tau) on
     e, i.e. g e + g (alpha - 1) w with w' = alpha w + e, g = kd / (tau + dt),
     alpha = tau / (tau + dt); resonant term h (leveler.loop.resonant):
     (re, im)' = r rot(w_h dt) (re, im) + (dt e, 0), adding k_h (cos(phase_h) re -
@@ -41,11 +43,14 @@ def closed_loop_matrix(params: PlantParams, rate_hz: float, kp: float, ki: float
     bv = b * (params.piezo.gain_m_per_v / params.platform.support_spacing_m * pe.sensor_arm_m)
     g = kd / (d_filter_tau_s + dt) if kd else 0.0
     alpha = d_filter_tau_s / (d_filter_tau_s + dt)
-    blocks: list[tuple[float, float]] = []  # (its state's gain into u, its pole); fed by e
-    if ki:
-        blocks.append((ki * dt, 1.0))
+    blocks: list[tuple[float, float, float]] = []  # (gain into u, pole, fed by e times)
+    if ki2:
+        blocks.append((0.0, 1.0, dt))  # s1, the error's integral
+        blocks.append((1.0, 1.0, ki * dt + ki2 * dt * dt))  # the integral in volts
+    elif ki:
+        blocks.append((ki * dt, 1.0, 1.0))
     if kd:
-        blocks.append((g * (alpha - 1.0), alpha))
+        blocks.append((g * (alpha - 1.0), alpha, 1.0))
     harmonics = [] if terms is None else list(enumerate(
         zip(terms.gains_v_per_m_s, terms.phases_rad, strict=True), 1))
     nf = 0 if notch is None else 2
@@ -64,10 +69,12 @@ def closed_loop_matrix(params: PlantParams, rate_hz: float, kp: float, ki: float
         m[4] = b2 * y - a2 * yf
     m[:3] -= np.outer(bv, (kp + g) * yf)
     first = 3 + nf
-    for j, (gain, pole) in enumerate(blocks, start=first):
+    for j, (gain, pole, feed) in enumerate(blocks, start=first):
         m[:3, j] += bv * gain  # the block's state drives u
-        m[j] -= yf             # fed by e = -yf
+        m[j] -= feed * yf      # fed by e = -yf
         m[j, j] += pole
+    if ki2:
+        m[first + 1, first] += ki2 * dt  # the integral takes ki2 dt s1 each sample
     for i, (h, (k, phase)) in enumerate(harmonics):
         assert terms is not None
         j = first + len(blocks) + 2 * i
@@ -83,15 +90,15 @@ def closed_loop_matrix(params: PlantParams, rate_hz: float, kp: float, ki: float
 def predicted_instability(params: PlantParams, rate_hz: float, kp: float, ki: float,
                           kd: float, d_filter_tau_s: float,
                           terms: PeriodicTerms | None = None,
-                          notch: Notch | None = None) -> str | None:
+                          notch: Notch | None = None, ki2: float = 0.0) -> str | None:
     """Why the plant model says these gains make an unstable loop, or None if they do not.
 
     Only the closed-loop poles (microseconds): `tune` and a reload ask this before they
     apply new gains, so a dropped derivative or a typo cannot set the stand ringing."""
-    if not (kp or ki or kd or terms):  # no feedback: the open plant, stable as configured
+    if not (kp or ki or kd or ki2 or terms):  # no feedback: the open plant, as configured
         return None
     poles = np.linalg.eigvals(closed_loop_matrix(params, rate_hz, kp, ki, kd, d_filter_tau_s,
-                                                 terms, notch))
+                                                 terms, notch, ki2))
     worst = poles[np.argmax(np.abs(poles))]
     if abs(worst) < 1.0:
         return None
@@ -99,6 +106,7 @@ def predicted_instability(params: PlantParams, rate_hz: float, kp: float, ki: fl
     return (f"the plant model predicts an unstable loop at {rate_hz:g} Hz: a closed-loop pole "
             f"at |z| = {abs(worst):.4g} ({f_hz:.3g} Hz) with kp {kp:g} V/m, ki {ki:g} V/(m s), "
             f"kd {kd:g} V s/m, d_filter_tau_s {d_filter_tau_s:g} s"
+            + (f", ki2 {ki2:g} V/(m s^2)" if ki2 else "")
             + ("" if terms is None else
                f", and {len(terms.gains_v_per_m_s)} resonant terms at the harmonics of "
                f"{terms.period_s:g} s")

@@ -110,7 +110,7 @@ def plant_tf(params: PlantParams, rate_hz: float) -> control.TransferFunction:
 
 
 def controller_tf(kp: float, ki: float, kd: float, d_filter_tau_s: float,
-                  rate_hz: float) -> control.TransferFunction:
+                  rate_hz: float, ki2: float = 0.0) -> control.TransferFunction:
     """`leveler.loop.pid.PID` from error to volts (D taken on the error; see module doc).
 
     Terms with a zero gain are left out rather than added as 0 / (z - 1): that would
@@ -118,7 +118,11 @@ def controller_tf(kp: float, ki: float, kd: float, d_filter_tau_s: float,
     """
     dt = 1.0 / rate_hz
     c = control.tf([kp], [1.0], dt)
-    if ki:
+    if ki2:  # i' = i + ki dt e + ki2 dt s1', s1' = s1 + dt e: one fraction over (z - 1)^2
+        # (ki dt / (z - 1) + ki2 dt^2 z / (z - 1)^2 added as two would leave a third,
+        # uncancelled pole at z = 1 in the closed loop's state space)
+        c = c + control.tf([ki * dt + ki2 * dt * dt, -ki * dt], [1.0, -2.0, 1.0], dt)
+    elif ki:
         c = c + control.tf([ki * dt], [1.0, -1.0], dt)
     if kd:
         c = c + control.tf([kd, -kd], [d_filter_tau_s + dt, -d_filter_tau_s], dt)
@@ -145,9 +149,9 @@ def _response(sys: control.TransferFunction, f_hz: np.ndarray | float) -> np.nda
 
 
 def loop_margins(params: PlantParams, rate_hz: float, kp: float, ki: float, kd: float,
-                 d_filter_tau_s: float) -> Suggestion:
+                 d_filter_tau_s: float, ki2: float = 0.0) -> Suggestion:
     """Margins, crossover and suppression of the loop these gains make (e.g. the config's)."""
-    loop = controller_tf(kp, ki, kd, d_filter_tau_s, rate_hz) * plant_tf(params, rate_hz)
+    loop = controller_tf(kp, ki, kd, d_filter_tau_s, rate_hz, ki2) * plant_tf(params, rate_hz)
     band = _resonance_band_hz(params, rate_hz)
     # A dense grid of our own: python-control's default one for a discrete loop is too coarse
     # for a Q ~ 19 peak, and its polynomial method reports the integrator at z = 1 as a

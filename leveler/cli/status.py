@@ -74,7 +74,9 @@ def format_status(st: dict[str, Any]) -> str:
         ]
     lines += [
         f"controller  kp {c['kp_v_per_m']:.4g} V/m  ki {c['ki_v_per_m_s']:.4g} V/(m s)  "
-        f"kd {c['kd_v_s_per_m']:.4g} V s/m  setpoint {c['setpoint_m']:.4g} m  "
+        f"kd {c['kd_v_s_per_m']:.4g} V s/m  "
+        + (f"ki2 {c['ki2_v_per_m_s2']:.4g} V/(m s^2)  " if c.get("ki2_v_per_m_s2") else "")
+        + f"setpoint {c['setpoint_m']:.4g} m  "
         f"limits {c['output_min_v']:g}..{c['output_max_v']:g} V  "
         f"slew {_limit(c['slew_v_per_s'])} V/s",
         *([f"            resonant terms at harmonics 1-{len(c['periodic_gains_v_per_m_s'])} "

@@ -7,11 +7,12 @@ import math
 from pathlib import Path
 
 from leveler.cli.common import add_socket
-from leveler.cli.tune_model import retrack, running_config, suggest_from_model
+from leveler.cli.tune_model import retrack, running_config, suggest_boost, suggest_from_model
 from leveler.daemon.client import Client, ClientError
 from leveler.daemon.protocol import TUNE_INF_OK
 
 FLAG_KEYS = {"kp": "kp_v_per_m", "ki": "ki_v_per_m_s", "kd": "kd_v_s_per_m",
+             "ki2": "ki2_v_per_m_s2",
              "setpoint": "setpoint_m", "min_v": "output_min_v", "max_v": "output_max_v",
              "slew": "slew_v_per_s", "notch_hz": "notch_frequency_hz", "notch_q": "notch_q",
              "notch_depth": "notch_depth"}
@@ -39,6 +40,8 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--kp", type=float, help="proportional gain [V/m]")
     p.add_argument("--ki", type=float, help="integral gain [V/(m s)]")
     p.add_argument("--kd", type=float, help="derivative gain [V s/m]")
+    p.add_argument("--ki2", type=float, help="double-integral gain [V/(m s^2)]: loop gain "
+                   "rising as 1/f^2 below ki2 / (2 pi ki) Hz; 0: none")
     p.add_argument("--setpoint", type=float, help="setpoint of the sensor reading [m] (SI: "
                    "1e-6 is 1 um; refused beyond +-1 mm)")
     p.add_argument("--min-v", type=float, help="lower output limit [V]; a range that excludes "
@@ -75,6 +78,10 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--log", default=None, metavar="LOG",
                    help="with --suggest --model: also replay this log's run with the terms "
                    "added (the replay what-if; typically the log the model was diagnosed from)")
+    p.add_argument("--boost", action="store_true",
+                   help="with --suggest: a double integral and the PID moved to keep the "
+                   "margins, for more loop gain in 1-10 mHz, searched over the model's "
+                   "tolerances (--model, else the config's plant); with its predicted tilt")
     p.add_argument("--retrack", default=None, metavar="LOG",
                    help="re-estimate the period of the running resonant terms from a recent "
                    "log's command (the loop drives the piezo against the disturbance at its "
@@ -110,9 +117,11 @@ def run(args: argparse.Namespace) -> int:
         raise ClientError("--model goes with --suggest (or --retrack)")
     if args.suggest and args.retrack:
         raise ClientError("--retrack LOG re-designs the running terms; give it without --suggest")
+    if args.boost and not args.suggest:
+        raise ClientError("--boost goes with --suggest")
     if args.suggest or args.retrack:
-        values.update(retrack(args) if args.retrack else suggest_from_model(args)
-                      if args.model is not None else _suggest(args))
+        values.update(retrack(args) if args.retrack else suggest_boost(args) if args.boost
+                      else suggest_from_model(args) if args.model is not None else _suggest(args))
         if not args.apply:
             return 0
         if not values:
@@ -143,7 +152,7 @@ def _suggest(args: argparse.Namespace) -> dict[str, float]:
     cfg, _ = load_config(Path(config))
     c = cfg.controller
     current = suggest.loop_margins(cfg.plant, cfg.loop.rate_hz, c.kp_v_per_m, c.ki_v_per_m_s,
-                                   c.kd_v_s_per_m, c.d_filter_tau_s)
+                                   c.kd_v_s_per_m, c.d_filter_tau_s, c.ki2_v_per_m_s2)
     try:
         proposal = suggest.suggest(cfg.plant, cfg.loop.rate_hz, bandwidth_hz=args.bandwidth,
                                    phase_margin_deg=args.phase_margin)

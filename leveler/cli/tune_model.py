@@ -233,3 +233,31 @@ def retrack(args: argparse.Namespace) -> dict[str, Any]:
     if why:
         raise ClientError(f"the re-designed terms are refused: {why}")
     return values
+
+
+def suggest_boost(args: argparse.Namespace) -> dict[str, Any]:
+    """Print the boosted PID (leveler.analysis.boost) on the running controller and what a
+    simulated run of the model predicts it does; returns its gains as tune values."""
+    from leveler.analysis import boost, periodic
+    from leveler.settings import load_config
+
+    config = running_config(args)
+    cfg, _ = load_config(Path(config))
+    model = cfg if args.model is None else load_config(Path(args.model))[0]
+    at_rate = dataclasses.replace(model, loop=cfg.loop)
+    c = cfg.controller
+    print(f"plant model from {args.model or config}; controller and loop rate from {config}")
+    b = boost.design(at_rate.plant, cfg.loop.rate_hz, c)
+    if b is None:
+        print(f"No boost: no double integral within the search keeps "
+              f"{periodic.MIN_GAIN_MARGIN_DB:g} dB and {periodic.MIN_PHASE_MARGIN_DEG:g} deg "
+              "on every model while at least doubling the worst suppression in 1-10 mHz.")
+        return {}
+    print(boost.report(b, c))
+    if args.predict_hours > 0:
+        d = periodic.named_disturbance(at_rate.plant)
+        lines = [] if d is None else periodic.lines_hz(d.period_s)
+        pred = periodic.predict(at_rate, c, b.controller, lines, args.predict_hours * 3600.0)
+        print("\n".join(periodic.predicted_rows(
+            pred, [f"ASD at {f * 1e3:.3g} mHz (line {j + 1})" for j, f in enumerate(lines)])))
+    return boost.values(b)

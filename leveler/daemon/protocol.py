@@ -33,6 +33,7 @@ TUNE_KEYS: dict[str, float | None] = {
     "kp_v_per_m": 0.0,
     "ki_v_per_m_s": 0.0,
     "kd_v_s_per_m": 0.0,
+    "ki2_v_per_m_s2": 0.0,
     "setpoint_m": None,
     "output_min_v": None,
     "output_max_v": None,

@@ -272,7 +272,7 @@ class Daemon:
         """Why the plant model predicts `c`'s gains unstable at the running rate, or None."""
         return predicted_instability(plant, self.cfg.loop.rate_hz, c.kp_v_per_m,
                                      c.ki_v_per_m_s, c.kd_v_s_per_m, c.d_filter_tau_s,
-                                     c.periodic_terms(), c.notch())
+                                     c.periodic_terms(), c.notch(), c.ki2_v_per_m_s2)
 
     def _unstable_at_start(self) -> str | None:
         """Why the plant model says the configured gains make an unstable loop, or None.
@@ -291,7 +291,7 @@ class Daemon:
                          new: ControllerConfig) -> None:
         """ProtocolError if `new` changes the loop's gains to ones the plant model predicts
         unstable at the running rate (a setpoint or limit change is never refused here)."""
-        gains = ("kp_v_per_m", "ki_v_per_m_s", "kd_v_s_per_m", "d_filter_tau_s",
+        gains = ("kp_v_per_m", "ki_v_per_m_s", "kd_v_s_per_m", "ki2_v_per_m_s2", "d_filter_tau_s",
                  *PERIODIC_KEYS, "notch_frequency_hz", "notch_q", "notch_depth")
         if all(getattr(old, k) == getattr(new, k) for k in gains):
             return
@@ -467,8 +467,9 @@ class Daemon:
             pid.set_slew(new.slew_v_per_s)
         if new.setpoint_m != old.setpoint_m:
             pid.set_setpoint(new.setpoint_m)
-        gains = PIDGains(new.kp_v_per_m, new.ki_v_per_m_s, new.kd_v_s_per_m)
-        if gains != PIDGains(old.kp_v_per_m, old.ki_v_per_m_s, old.kd_v_s_per_m):
+        gains = PIDGains(new.kp_v_per_m, new.ki_v_per_m_s, new.kd_v_s_per_m, new.ki2_v_per_m_s2)
+        if gains != PIDGains(old.kp_v_per_m, old.ki_v_per_m_s, old.kd_v_s_per_m,
+                             old.ki2_v_per_m_s2):
             pid.set_gains(gains)
         if new.periodic_terms() != old.periodic_terms():
             pid.set_periodic(new.periodic_terms())

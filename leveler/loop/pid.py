@@ -16,6 +16,11 @@ Design choices, and why:
 * Optional resonant terms (``PIDConfig.periodic``, leveler.loop.resonant) are the
   integral's counterpart for a periodic disturbance; their output is reported within
   ``i_v`` (both are the controller's internal models), so p + i + d stays the command.
+* An optional double integral (``PIDGains.ki2``) adds ki2 x (the integral of the error) to
+  the integral's own increments, so the integral state in volts holds both and every
+  bumpless rule above holds for it: loop gain rising as 1 / f^2 below ki2 / (2 pi ki) Hz,
+  for the mHz band a single integrator leaves. The error's integral it feeds on advances
+  only while the command follows the sum (conditional integration).
 * An optional notch (``PIDConfig.notch``, leveler.loop.notch) filters the reading before
   all three terms: the loop stops acting at one frequency (a mode the model lacks). The
   logged ``error_m`` is the setpoint minus the filtered reading, what the terms acted on.
@@ -64,11 +69,13 @@ class PIDGains:
     kp: float  # V/m
     ki: float  # V/(m s)
     kd: float  # V s/m
+    ki2: float = 0.0  # V/(m s^2): the double integral, a boost of the loop gain below ~ki2/ki
 
     def __post_init__(self) -> None:
         _require_finite("kp", self.kp)
         _require_finite("ki", self.ki)
         _require_finite("kd", self.kd)
+        _require_finite("ki2", self.ki2)
 
 
 @dataclass(frozen=True, slots=True)
@@ -109,6 +116,7 @@ class ControllerConfig:
     kp_v_per_m: float = 0.0
     ki_v_per_m_s: float = 7.0e5
     kd_v_s_per_m: float = 0.0
+    ki2_v_per_m_s2: float = 0.0  # double integral; 0: none
     setpoint_m: float = 0.0
     output_min_v: float = 0.0
     output_max_v: float = 150.0
@@ -150,7 +158,8 @@ class ControllerConfig:
 
     def pid_config(self) -> PIDConfig:
         return PIDConfig(
-            gains=PIDGains(self.kp_v_per_m, self.ki_v_per_m_s, self.kd_v_s_per_m),
+            gains=PIDGains(self.kp_v_per_m, self.ki_v_per_m_s, self.kd_v_s_per_m,
+                           self.ki2_v_per_m_s2),
             output_min_v=self.output_min_v,
             output_max_v=self.output_max_v,
             setpoint_m=self.setpoint_m,
@@ -206,6 +215,7 @@ class PID:
         "_i",
         "_kd",
         "_ki",
+        "_ki2",
         "_kp",
         "_lo",
         "_notch",
@@ -216,6 +226,7 @@ class PID:
         "_raw",
         "_res",
         "_res_wait_s",
+        "_s1",
         "_slew",
         "_sp",
         "_target",
@@ -245,6 +256,7 @@ class PID:
         self._res_wait_s = 0.0  # until the resonant terms are fed (after an engage)
         self._notch: NotchFilter | None = None  # made at the first update, which knows dt
         self._raw = 0.0  # the last reading before the notch (while there is one)
+        self._s1 = 0.0  # the error's integral [m s] the double integral feeds on
 
     @property
     def config(self) -> PIDConfig:
@@ -262,6 +274,7 @@ class PID:
         self._config = config
         self._kp = gains.kp
         self._ki = gains.ki
+        self._ki2 = gains.ki2
         self._kd = gains.kd
         self._lo = config.output_min_v
         self._hi = config.output_max_v
@@ -342,6 +355,10 @@ class PID:
         tt = self._tt
         k_track = dt_s / (tt + dt_s) if tt > 0.0 else _SAMPLE_TRACKING_GAIN
         delta = self._ki * error * dt_s + (cmd - u) * k_track
+        ki2 = self._ki2
+        if ki2:
+            s1 = self._s1 + error * dt_s if cmd == u else self._s1
+            delta += ki2 * s1 * dt_s
         if (delta > 0.0 and cmd >= hi) or (delta < 0.0 and cmd <= lo):
             delta = 0.0  # freeze: never integrate further into the rail we sit on
         i_next = i + delta
@@ -351,6 +368,8 @@ class PID:
             raise OverflowError(f"PID arithmetic overflowed (measurement {measurement_m!r} m, "
                                 f"p {p!r} V, i {i!r} V, d {d!r} V)")
         self._i = i_next
+        if ki2:
+            self._s1 = s1
         if res is not None:
             # Fed while the command follows the sum (not railed or slew-limited), and not in
             # the engage transient, which is the PID's to take out: fed, it rings the terms
@@ -378,6 +397,8 @@ class PID:
         """
         config = replace(self._config, gains=gains)
         self._i = self._u - self._r - gains.kp * self._err + gains.kd * self._df
+        if not gains.ki2:
+            self._s1 = 0.0  # switched on again, the double integral starts from rest
         self._apply(config)
 
     def set_periodic(self, terms: PeriodicTerms | None) -> None:
@@ -442,6 +463,7 @@ class PID:
         self._prev = measurement_m
         self._raw = measurement_m
         self._notch = None  # restarted from this reading by the next update
+        self._s1 = 0.0
         self._df = 0.0
         self._err = error
         self._out = out
