@@ -21,6 +21,10 @@ what a perfect diagnosis returns):
 * gain margin >= 6 dB and phase margin >= 40 deg on every +-2 sigma corner of the model's
   stated tolerances (leveler.analysis.periodic.check).
 
+The same goals for the variant that instead boosts the loop gain in the mHz band with a
+double integral chosen from the model's tolerances (`leveler tune --suggest --boost`),
+where the worst in-loop suppression anywhere in 1-10 mHz is held to the 200x.
+
 Each control change is a variant of its own, added on top of the one before, so the table
 shows what each one buys. Figures are read on log-spaced frequencies across each band, and
 on the cooler's lines there, and the worst one is reported.
@@ -35,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from leveler.analysis import periodic
+from leveler.analysis import boost, periodic
 from leveler.analysis.periodic import floor_tilt
 from leveler.analysis.spectral import asd_at
 from leveler.settings import Config, load_config
@@ -49,6 +53,7 @@ IN_BAND_HZ = tuple(np.geomspace(1e-3, 1e-2, 9))
 OUT_BAND_HZ = tuple(np.geomspace(1e-4, 1e-2, 13))
 HIGH_BAND_HZ = tuple(np.geomspace(1e-2, 1e-1, 9))
 CANCELLED = "+ cooler cancelled: resonant terms from the model"
+BOOSTED = "default + boost: double integral from the model's tolerances"
 COARSE_ADC_BITS = 12  # 24 nm steps, 20x the noise per sample
 OVERSAMPLE = 256  # conversions per cycle (2.56 kS/s): spread 18 nm rms, about one step
 
@@ -78,6 +83,7 @@ def variants(cfg: Config) -> list[tuple[str, Config]]:
         (f"+ resonance damped by D, {cfg.controller.ki_v_per_m_s / 7.0e5:.0f}x the integral "
          "(default)", cfg),
         (CANCELLED, cancelled(cfg)),
+        (BOOSTED, boosted(cfg)),
         (f"{COARSE_ADC_BITS}-bit ADC, 1 conversion/cycle", coarse),
         (f"{COARSE_ADC_BITS}-bit ADC + {OVERSAMPLE}x oversampling",
          _sensor(coarse, samples_per_cycle=OVERSAMPLE)),
@@ -92,6 +98,15 @@ def cancelled(cfg: Config) -> Config:
     return _controller(cfg, periodic_period_s=terms.period_s,
                        periodic_gains_v_per_m_s=terms.gains_v_per_m_s,  # type: ignore[arg-type]
                        periodic_phases_rad=terms.phases_rad)  # type: ignore[arg-type]
+
+
+def boosted(cfg: Config) -> Config:
+    """The default loop with the double integral and PID gains `leveler tune --suggest
+    --boost` chooses from the model (no resonant terms)."""
+    b = boost.design(cfg.plant, cfg.loop.rate_hz, cfg.controller)
+    if b is None:
+        raise RuntimeError("no boost met the goals on the default stand")
+    return _controller(cfg, **boost.values(b))
 
 
 def _with_lines(band: tuple[float, ...], period_s: float) -> tuple[float, ...]:
@@ -139,13 +154,15 @@ def run(quick: bool) -> list[dict]:
         k_out = int(np.argmax(over_floor))
         over_high = _asd(closed.tilt_rad, fs, high_band) / _asd(floor_x, fs, high_band)
         k_high = int(np.argmax(over_high))
-        goal = name == CANCELLED
+        goal = name in (CANCELLED, BOOSTED)
         rows += [
             _row(f"{name}: in-loop ASD at {f_low * 1e3:g} mHz", float(closed_in[0]) * 1e6,
                  "um/rtHz", f"open loop {open_in[0] * 1e6:.3g} um/rtHz", float(supp[0]),
                  ">= 200x", bool(supp[0] >= 200), f"paper 20x; {span}"),
             _row(f"{name}: worst in-loop suppression, 1-10 mHz", float(supp[k_in]), "x",
-                 "open loop, same seed", float(supp[k_in]), ">= 10x", bool(supp[k_in] >= 10),
+                 "open loop, same seed", float(supp[k_in]),
+                 ">= 200x" if name == BOOSTED else ">= 10x",
+                 bool(supp[k_in] >= (200 if name == BOOSTED else 10)),
                  f"worst at {in_band[k_in - 1] * 1e3:.3g} mHz; paper ~1x"),
             _row(f"{name}: true tilt over the sensor floor, "
                  f"{out_band[0] * 1e3:.2g}-10 mHz", float(over_floor[k_out]), "x",
@@ -169,7 +186,10 @@ def run(quick: bool) -> list[dict]:
                      float(lines[k_line]), "x", "open loop, same seed", float(lines[k_line]),
                      ">= 200x", bool(lines[k_line] >= 200),
                      f"worst at {np.asarray(in_band)[on_line][k_line] * 1e3:.3g} mHz; "
-                     f"{len(variant.controller.periodic_gains_v_per_m_s)} harmonics"),
+                     f"{len(variant.controller.periodic_gains_v_per_m_s)} harmonics"
+                     if name == CANCELLED else
+                     f"worst at {np.asarray(in_band)[on_line][k_line] * 1e3:.3g} mHz; no "
+                     "resonant terms"),
                 _row(f"{name}: gain margin, worst of {check.corners} models",
                      check.gain_margin_db, "dB", "", None, ">= 6 dB",
                      check.gain_margin_db >= 6.0,
