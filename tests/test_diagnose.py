@@ -157,6 +157,7 @@ def test_hidden_effect_is_found_fast(name: str, tmp_path: Path) -> None:
     _run(name, 11 + FAST.index(name), tmp_path)
 
 
+@pytest.mark.slow  # 17 s; make test-slow
 def test_families_fitted_in_parallel_give_the_serial_result(tmp_path: Path) -> None:
     """Each round's families fitted in forked workers: the same candidates in the same
     order, with the same scores. (A BLAS with more threads rounds otherwise, and a fit

@@ -89,6 +89,7 @@ def _cancel_on_the_log(log: Path, d: Diagnosis) -> None:
     assert replayed[0] < logged[0] / 2, (logged, replayed)
 
 
+@pytest.mark.slow  # 24 s; the bench-diagnose scoreboard scores this family
 def test_a_coupling_within_the_thermal_path_is_still_a_coupling(tmp_path: Path) -> None:
     """A 2.6 urad/K coupling through 592 s and 1,978 s lags, a quarter of the thermal
     path's own: with its start state fitted by plain least squares on the raw residual
@@ -112,6 +113,7 @@ def test_a_gain_error_taken_before_a_coupling_is_dropped_as_a_calibration(
     assert d.params is not None and d.model.sensor_gain_error is None
 
 
+@pytest.mark.slow  # 15 s; make test-slow
 def test_an_effect_the_whole_log_does_not_confirm_is_not_taken(tmp_path: Path) -> None:
     """A modulated null log (tuning seed 102006): a sensor drift held out at 1.5 pm/s and
     the whole log's fit made it 0.24 pm/s, six times smaller. What held out is not what
@@ -124,6 +126,7 @@ def test_an_effect_the_whole_log_does_not_confirm_is_not_taken(tmp_path: Path) -
     assert any(c.note.startswith("the whole log's fit disagrees") for c in d.candidates)
 
 
+@pytest.mark.slow  # 23 s; the bench-diagnose scoreboard scores this family
 def test_a_hysteresis_under_a_square_modulation_shows_in_the_closed_loops_reversals(
         tmp_path: Path) -> None:
     """A strong Bouc-Wen piezo (a = 0.147) under a square modulation (tuning seed 107): over

@@ -31,7 +31,7 @@ def _coupled(base: str, k: float) -> Config:
 
 
 def test_the_default_loop_leaves_feedforward_nothing_to_buy() -> None:
-    b = feedforward.bound(_coupled("sim.toml", 5e-6), 24 * 3600.0)
+    b = feedforward.bound(_coupled("sim.toml", 5e-6), 12 * 3600.0)
     most, _ = b.gain()
     assert most < feedforward.WORTH, most
     assert b.railed == 0.0
@@ -39,7 +39,7 @@ def test_the_default_loop_leaves_feedforward_nothing_to_buy() -> None:
 
 
 def test_a_slow_loop_gains_from_it_and_an_error_in_gain_costs_some() -> None:
-    b = feedforward.bound(_coupled("lab.toml", 5e-6), 24 * 3600.0)
+    b = feedforward.bound(_coupled("lab.toml", 5e-6), 12 * 3600.0)
     most, where = b.gain()
     off, _ = b.gain(b.off)
     assert most > 3.0 and 1e-4 < where < 3e-3, (most, where)  # at the mHz, below crossover

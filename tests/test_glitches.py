@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from conftest import daemon_config
 from test_backend_parity import free_port
 
@@ -22,6 +23,7 @@ FAULTS = {  # emulator time; the daemon starts about a second later and engages 
 EXPECTED = {"modbus": 5, "serial": 4}  # one failed request per spoiled reply
 
 
+@pytest.mark.slow  # 26 s; make test-slow
 def test_bad_replies_are_counted_logged_and_ridden_through(tmp_path: Path) -> None:
     port = free_port()
     replace = {"port = 5020": f"port = {port}",

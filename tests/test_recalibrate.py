@@ -116,6 +116,7 @@ def test_the_report_gives_each_recalibrated_value_with_its_pull(
     assert out["recalibration"]["natural_frequency"]["sigma_rel"] == 0.02
 
 
+@pytest.mark.slow  # 23 s; make test-slow
 def test_a_sensor_path_far_beyond_its_tolerance_is_the_sensor_gain_error(
         offset_logs: dict[str, Path], tmp_path: Path) -> None:
     model_out = tmp_path / "fitted.toml"

@@ -37,7 +37,7 @@ def test_the_period_is_found_on_the_independent_generators_sawtooth(tmp_path: Pa
     """Asymmetric sawtooths with 3-4 % period jitter, in logs that open with a modulation,
     from a generator written without this code; the terms' period 2 % off the true one."""
     log = tmp_path / "p.mcap"
-    truth = generate("periodic_disturbance", "strong", seed, log, hours=6.0, modulated=True,
+    truth = generate("periodic_disturbance", "strong", seed, log, hours=4.0, modulated=True,
                      nominal_config=REPO / "config" / "sim.toml")
     period = truth["params"]["period_s"]
     track = _estimate(log, period * off)

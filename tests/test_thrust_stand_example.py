@@ -53,6 +53,7 @@ def test_a_stepped_sweep_gives_k0_and_the_coupling_within_their_sigma(
         assert got["coupling_ratio"] == pytest.approx(want["r"], abs=0.05 + 0.05 * abs(want["r"]))
 
 
+@pytest.mark.slow  # 11 s; make test-slow (the stepped sweep stays in make test)
 def test_a_balanced_pendulum_is_not_called_coupled(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     truth, r = analysed(tmp_path, "null", capsys)

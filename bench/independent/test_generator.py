@@ -149,6 +149,7 @@ def test_sawtooth_adds_a_line_at_its_period(tmp_path: Path) -> None:
     assert np.ptp(diff) == pytest.approx(expected, rel=0.35)
 
 
+@pytest.mark.slow  # 7 s; make test-slow
 def test_hysteresis_depends_on_the_direction_of_motion(tmp_path: Path) -> None:
     _null, eff, ln, diff = _open_loop_difference(tmp_path, "actuator_hysteresis", 12)
     v = ln.samples["applied_v"][: len(diff)]
@@ -167,6 +168,7 @@ def test_hysteresis_depends_on_the_direction_of_motion(tmp_path: Path) -> None:
     assert (down - up) > 0.2 * eff["params"]["a"] * eff["params"]["saturation_v"] * per_v
 
 
+@pytest.mark.slow  # 8 s; make test-slow
 def test_every_family_generates(tmp_path: Path) -> None:
     for family in fx.FAMILIES:
         truth, log = _gen(tmp_path, family, "medium", seed=5, hours=0.3)
