@@ -186,3 +186,17 @@ def test_the_kernel_leaves_a_notched_loop_to_the_objects() -> None:
         assert _Kernel.unsupported(vs) == "a notch on the reading"
         vs.run(60_000)
         assert vs._kernel is None
+
+
+def test_a_refused_sample_leaves_the_notch_as_it_was() -> None:
+    """An overflowing reading raises and changes nothing, the notch's state included."""
+    c = dataclasses.replace(CFG.controller, notch_frequency_hz=1.5, kp_v_per_m=1e6)
+    a, b = (PID(c.pid_config(), initial_output_v=70.0) for _ in range(2))
+    for k in range(50):
+        for pid in (a, b):
+            pid.update(1e-8 * math.sin(0.3 * k), 0.1)
+    with pytest.raises(OverflowError):
+        a.update(1e308, 0.1)
+    for k in range(50, 60):
+        assert a.update(1e-8 * math.sin(0.3 * k), 0.1).command_v == \
+            b.update(1e-8 * math.sin(0.3 * k), 0.1).command_v

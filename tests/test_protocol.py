@@ -45,6 +45,9 @@ def test_bad_requests_are_named(line: bytes, needle: str) -> None:
         ({"kp_v_per_m": True}, "kp_v_per_m must be a number"),
         ({"ki_v_per_m_s": -1.0}, "ki_v_per_m_s must be >= 0.0"),
         ({"slew_v_per_s": 0.0}, "slew_v_per_s must be > 0"),
+        ({"notch_q": 0.0}, r"notch_q must be > 0"),  # persisted, it would not load again
+        ({"notch_depth": 1.0}, r"notch_depth must be in \[0, 1\)"),
+        ({"periodic_radius": 0.0}, r"periodic_radius must be in \(0, 1\]"),
         ({"kq": 1.0}, "unknown key 'kq'"),
         ({}, "nothing to change"),
         ({"kp_v_per_m": 1.0, "persist": "yes"}, "persist must be true or false"),

@@ -252,6 +252,12 @@ def tune_args(req: dict[str, Any]) -> tuple[dict[str, Any], bool]:
         values[key] = value
     if "slew_v_per_s" in values and values["slew_v_per_s"] <= 0:
         raise ProtocolError(f"tune: slew_v_per_s must be > 0, got {values['slew_v_per_s']!r}")
+    # the config file's own bounds, so a persisted value is one the daemon can load again
+    for key, ok, bound in (("notch_q", lambda v: v > 0, "> 0"),
+                           ("notch_depth", lambda v: v < 1, "in [0, 1)"),
+                           ("periodic_radius", lambda v: 0 < v <= 1, "in (0, 1]")):
+        if key in values and not ok(values[key]):
+            raise ProtocolError(f"tune: {key} must be {bound}, got {values[key]!r}")
     if abs(values.get("setpoint_m", 0.0)) > SETPOINT_BOUND_M:
         raise ProtocolError(
             f"tune: setpoint_m {values['setpoint_m']:g} m is not a plausible sensor reading: "

@@ -73,6 +73,13 @@ class NotchFilter:
         self._z1 = x * (1.0 - self._b0)
         self._z2 = x * (self._b2 - self._a2)
 
+    def state(self) -> tuple[float, float]:
+        return self._z1, self._z2
+
+    def restore(self, state: tuple[float, float]) -> None:
+        """Back to a `state()`: a caller that refuses a sample undoes its step."""
+        self._z1, self._z2 = state
+
     def step(self, x: float, dt_s: float) -> float:
         if dt_s != self._dt:
             self._coefficients(dt_s)

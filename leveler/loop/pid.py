@@ -69,7 +69,7 @@ class PIDGains:
     kp: float  # V/m
     ki: float  # V/(m s)
     kd: float  # V s/m
-    ki2: float = 0.0  # V/(m s^2): the double integral, a boost of the loop gain below ~ki2/ki
+    ki2: float = 0.0  # V/(m s^2): a double integral, loop gain as 1/f^2 below ki2/(2 pi ki)
 
     def __post_init__(self) -> None:
         _require_finite("kp", self.kp)
@@ -297,12 +297,14 @@ class PID:
         if not -_INF < measurement_m < _INF:
             raise ValueError(f"measurement_m must be finite, got {measurement_m!r}")
         notch = self._config.notch
+        filt = None
         if notch is not None:
-            self._raw = measurement_m
             filt = self._notch
             if filt is None or self._prev is None:
                 filt = self._notch = NotchFilter(notch, dt_s)
                 filt.seed(measurement_m)
+            filtered = filt.state()  # undone if this sample is refused (OverflowError)
+            raw = measurement_m
             measurement_m = filt.step(measurement_m, dt_s)
 
         sp = self._sp
@@ -365,9 +367,13 @@ class PID:
         if not -_INF < i_next + cmd < _INF:
             # Absurd inputs (a 1e300 reading times a large gain) overflow to inf - inf = NaN;
             # refuse before any state changes, so a NaN never reaches the actuator.
+            if filt is not None:
+                filt.restore(filtered)
             raise OverflowError(f"PID arithmetic overflowed (measurement {measurement_m!r} m, "
                                 f"p {p!r} V, i {i!r} V, d {d!r} V)")
         self._i = i_next
+        if filt is not None:
+            self._raw = raw
         if ki2:
             self._s1 = s1
         if res is not None:
