@@ -67,6 +67,14 @@ class DaemonProc:
         return err
 
 
+def run_cli(*args: str, cwd: Path) -> str:
+    """`leveler ARGS` as a separate process in `cwd`; its stdout, asserting it succeeded."""
+    proc = subprocess.run([sys.executable, "-m", "leveler.cli", *args], capture_output=True,
+                          text=True, timeout=300, cwd=cwd)
+    assert proc.returncode == 0, proc.stderr
+    return proc.stdout
+
+
 def daemon_config(tmp_path: Path, sock: Path, *, rate_hz: float = 50.0, sim: str = "",
                   engage: bool = True, base: str = "sim.toml",
                   replace: dict[str, str] | None = None, control: str = "",

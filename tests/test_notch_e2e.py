@@ -8,8 +8,6 @@ the persisted config shows the mode gone from the true tilt."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -19,21 +17,14 @@ from leveler.analysis.spectral import asd_at
 from leveler.log.reader import read_log
 from leveler.settings import load_config
 
-from conftest import REPO  # isort: skip
+from conftest import REPO, run_cli  # isort: skip
 
 SEED = 5
 MODE = "\n[plant.effects.extra_resonance]\nfrequency_hz = 1.5\nq = 12.0\nnoise_rms_m = 2.0e-9\n"
 
 
-def _cli(*args: str, cwd: Path) -> str:
-    proc = subprocess.run([sys.executable, "-m", "leveler.cli", *args], capture_output=True,
-                          text=True, timeout=300, cwd=cwd)
-    assert proc.returncode == 0, proc.stderr
-    return proc.stdout
-
-
 def _sim(config: Path, out: Path) -> np.ndarray:
-    _cli("sim", "--config", str(config), "--duration", "1h", "--seed", str(SEED),
+    run_cli("sim", "--config", str(config), "--duration", "1h", "--seed", str(SEED),
          "--out", str(out), "--json", cwd=out.parent)
     return read_log(out).truth["tilt_rad"]
 
@@ -43,7 +34,7 @@ def test_diagnose_suggest_apply_and_the_mode_leaves_the_tilt(tmp_path: Path, sta
     truth.write_text((REPO / "config" / "sim.toml").read_text() + MODE)
     before = _sim(truth, tmp_path / "before.mcap")
     fitted = tmp_path / "fitted.toml"
-    found = json.loads(_cli("diagnose", str(tmp_path / "before.mcap"), "--model",
+    found = json.loads(run_cli("diagnose", str(tmp_path / "before.mcap"), "--model",
                             str(REPO / "config" / "sim.toml"), "--model-out", str(fitted),
                             "--max-effects", "1", "--json", cwd=tmp_path))
     mode = [e for e in found["effects"] if e["name"] == "extra_resonance"]

@@ -7,8 +7,6 @@ again with the persisted config shows the cooler's lines gone from the true tilt
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -18,21 +16,14 @@ from leveler.analysis.spectral import asd_at
 from leveler.log.reader import read_log
 from leveler.settings import load_config
 
-from conftest import REPO  # isort: skip
+from conftest import REPO, run_cli  # isort: skip
 
 SEED = 3
 HOURS = 3
 
 
-def _cli(*args: str, cwd: Path) -> str:
-    proc = subprocess.run([sys.executable, "-m", "leveler.cli", *args], capture_output=True,
-                          text=True, timeout=300, cwd=cwd)
-    assert proc.returncode == 0, proc.stderr
-    return proc.stdout
-
-
 def _sim(config: Path, out: Path) -> np.ndarray:
-    _cli("sim", "--config", str(config), "--duration", f"{HOURS}h", "--seed", str(SEED),
+    run_cli("sim", "--config", str(config), "--duration", f"{HOURS}h", "--seed", str(SEED),
          "--out", str(out), "--json", cwd=out.parent)
     return read_log(out).truth["tilt_rad"]
 
@@ -46,7 +37,7 @@ def test_diagnose_suggest_apply_and_the_lines_drop(tmp_path: Path, start_daemon)
 
     before = _sim(truth, tmp_path / "before.mcap")
     fitted = tmp_path / "fitted.toml"
-    found = json.loads(_cli("diagnose", str(tmp_path / "before.mcap"), "--model", str(lab),
+    found = json.loads(run_cli("diagnose", str(tmp_path / "before.mcap"), "--model", str(lab),
                             "--model-out", str(fitted), "--max-effects", "1", "--json",
                             cwd=tmp_path))
     periodic = [e for e in found["effects"] if e["name"] == "periodic_disturbance"]

@@ -6,7 +6,6 @@ running terms re-designed and applied where the cooler drifted, kept where it di
 from __future__ import annotations
 
 import json
-import subprocess
 import sys
 from pathlib import Path
 
@@ -16,7 +15,7 @@ from leveler.analysis import periodic, retrack
 from leveler.log.reader import read_log
 from leveler.settings import load_config
 
-from conftest import REPO  # isort: skip
+from conftest import REPO, run_cli  # isort: skip
 
 sys.path.insert(0, str(REPO / "bench"))  # bench/ is no package
 from independent.generator import generate
@@ -72,7 +71,7 @@ def test_drifted_terms_are_redesigned_and_applied_and_good_ones_kept(tmp_path: P
                                       f"[plant.cooler]\nperiod_s = {cooler}"))
         assert f"[plant.cooler]\nperiod_s = {cooler}" in stand.read_text()
         logs[cooler] = tmp_path / f"run{cooler:g}.mcap"
-        out = _cli("sim", "--config", str(stand), "--duration", "3h", "--seed",
+        out = run_cli("sim", "--config", str(stand), "--duration", "3h", "--seed",
                    "4", "--out", str(logs[cooler]), "--json", cwd=tmp_path)
         assert json.loads(out)["samples"] > 100_000
 
@@ -88,8 +87,3 @@ def test_drifted_terms_are_redesigned_and_applied_and_good_ones_kept(tmp_path: P
     assert terms is not None and terms.period_s == pytest.approx(306.0, abs=0.5)
 
 
-def _cli(*args: str, cwd: Path) -> str:
-    proc = subprocess.run([sys.executable, "-m", "leveler.cli", *args], capture_output=True,
-                          text=True, timeout=300, cwd=cwd)
-    assert proc.returncode == 0, proc.stderr
-    return proc.stdout

@@ -28,10 +28,11 @@ from leveler.analysis.periodic import (
     LoopCheck,
     check,
     corners,
+    margin_rows,
     margins,
     notch_tf,
 )
-from leveler.analysis.suggest import _response, controller_tf, plant_tf
+from leveler.analysis.suggest import _response, _toml_float, controller_tf, plant_tf
 from leveler.loop.pid import ControllerConfig
 from leveler.sim.params import PlantParams
 
@@ -116,9 +117,7 @@ def values(b: Boost) -> dict[str, float]:
 
 
 def report(b: Boost, c: ControllerConfig) -> str:
-    from leveler.analysis.periodic import margin_rows
-    from leveler.analysis.suggest import _toml_float
-
+    """The boosted gains as config lines beside today's, and both loops' checks."""
     v = values(b)
     lines = [
         f"The model's tolerances leave room for more loop gain in {BAND_HZ[0] * 1e3:g}-"

@@ -29,14 +29,14 @@ class Track:
     what the record spanned [s] and how many harmonics were summed."""
 
     period_s: float
-    peak_over_median: float  # the fundamental's power there over its power well off it
+    peak_over_floor: float  # the fundamental's power there over its power well off it
     record_s: float
     harmonics: int
     at_edge: bool = False  # the peak is the span's end: the period moved further, or no line
 
     @property
     def clear(self) -> bool:
-        return self.peak_over_median >= MIN_PEAK
+        return self.peak_over_floor >= MIN_PEAK
 
 
 def _blocks(t_s: np.ndarray, u: np.ndarray, block_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -112,7 +112,7 @@ def describe(track: Track, period0_s: float) -> str:
     return (f"the command's lines put the period at {track.period_s:.4g} s (+-{resolution:.2g} "
             f"s: a tenth of {track.record_s / 3600:.3g} h's resolution over {track.harmonics} "
             f"harmonics), {drift_rel(track, period0_s) * 100:+.2f} % from the terms' "
-            f"{period0_s:g} s; its line stands {track.peak_over_median:.3g}x over the power "
+            f"{period0_s:g} s; its line stands {track.peak_over_floor:.3g}x over the power "
             f"well off it{'' if track.clear else f' (under {MIN_PEAK:g}x: no clear line)'}"
             + (f"; at the edge of the +-{SPAN_REL:.0%} searched: the period moved further, or "
                "the line is not there (diagnose a recent log)" if track.at_edge else ""))

@@ -8,12 +8,15 @@ from __future__ import annotations
 import argparse
 import dataclasses
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from leveler.daemon.client import Client, ClientError
 from leveler.loop.pid import ControllerConfig
 from leveler.loop.resonant import PeriodicTerms
 from leveler.settings import Config
+
+if TYPE_CHECKING:  # the analysis (python-control) is imported when a suggestion is made
+    from leveler.analysis.periodic import Disturbance
 
 
 def running_config(args: argparse.Namespace) -> str:
@@ -99,7 +102,7 @@ def _suggest_notch(args: argparse.Namespace, model: Config,
 
 
 def _suggest_periodic(args: argparse.Namespace, model: Config, c: ControllerConfig,
-                      d: Any) -> dict[str, Any]:
+                      d: Disturbance) -> dict[str, Any]:
     """Print resonant terms against the model's periodic disturbance; returns them as tune
     values."""
     from leveler.analysis import periodic
