@@ -59,13 +59,16 @@ class Event:
 class Environment:
     """A measured condition of the stand's surroundings, e.g. the table's temperature.
 
-    Replay and diagnose use it as a model input (thermal tilt); only imported logs carry it
-    so far, simulated logs have the plate temperature in their truth topic.
+    Replay and diagnose use it as a model input (thermal tilt). The daemon writes one at
+    each thermometer reading (its seq is that cycle's; it holds until the next), imported
+    logs one per row. `feedforward_v` is what the temperature feedforward adds to the
+    command from then on while the loop is engaged (0 without one; older logs lack it).
     """
 
     seq: int
     t_s: float
     temperature_k: float
+    feedforward_v: float = 0.0
 
 
 @dataclass(slots=True)

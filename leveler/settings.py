@@ -9,7 +9,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from leveler.drivers.modbus_config import ModbusActuatorConfig, ModbusSensorConfig
+from leveler.drivers.modbus_config import (
+    ModbusActuatorConfig,
+    ModbusSensorConfig,
+    ModbusThermometerConfig,
+)
 from leveler.drivers.nidaq_config import NidaqActuatorConfig, NidaqSensorConfig
 from leveler.drivers.serial_config import SerialPiezoConfig, SerialSensorConfig
 from leveler.drivers.simulated_config import FaultSpec
@@ -65,6 +69,21 @@ class ActuatorConfig:
 
 
 @dataclass(frozen=True, slots=True)
+class ThermometerConfig:
+    """[thermometer]: the table's temperature, read every interval_s for the temperature
+    feedforward ([controller] feedforward_*) and logged on /leveler/environment. "sim"
+    reads the simulated plate ([plant.thermal] thermometer_*); none by default."""
+
+    backend: Literal["none", "sim", "modbus"] = "none"
+    interval_s: float = positive(1.0)
+    modbus: ModbusThermometerConfig | None = None
+
+    def __post_init__(self) -> None:
+        if self.backend == "modbus" and self.modbus is None:
+            raise ValueError('backend = "modbus" needs a [thermometer.modbus] table')
+
+
+@dataclass(frozen=True, slots=True)
 class SimConfig:
     """Simulation-only settings (the plant itself is [plant])."""
 
@@ -87,6 +106,7 @@ class Config:
     sim: SimConfig = field(default_factory=SimConfig)
     live: LiveConfig = field(default_factory=LiveConfig)
     epics: EpicsConfig = field(default_factory=EpicsConfig)
+    thermometer: ThermometerConfig = field(default_factory=ThermometerConfig)
 
     def __post_init__(self) -> None:
         if (self.sensor.backend == "sim") != (self.actuator.backend == "sim"):
@@ -98,6 +118,14 @@ class Config:
                 raise ValueError(f"actuator.safe_v: {self.actuator.safe_v} V is outside the "
                                  f"simulated piezo's range [plant.piezo] min_v..max_v = "
                                  f"[{pz.min_v}, {pz.max_v}] V")
+        if self.thermometer.backend == "sim" and self.sensor.backend != "sim":
+            raise ValueError('thermometer.backend: "sim" reads the simulated plate, which a '
+                             f'stand on sensor.backend = "{self.sensor.backend}" does not have; '
+                             'use "modbus" (or "none")')
+        if self.controller.feedforward() is not None and self.thermometer.backend == "none":
+            raise ValueError("controller.feedforward_gains_v_per_k: a temperature feedforward "
+                             "needs a thermometer; add [thermometer] backend = \"sim\" or "
+                             "\"modbus\" (docs/configuration.md)")
 
     def sensor_range_m(self) -> tuple[float, float, str]:
         """The readings the configured sensor can make [m], and the table that says so."""

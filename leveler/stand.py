@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from leveler.drivers.base import Actuator, Sensor
+from leveler.drivers.base import Actuator, Sensor, Thermometer
 from leveler.records import Truth
 from leveler.settings import Config
 
@@ -17,16 +17,22 @@ class Stand:
     sensor: Sensor
     actuator: Actuator
     truth: Callable[[int, float], Truth] | None
+    thermometer: Thermometer | None = None
+
+    def _devices(self) -> list[Sensor | Actuator | Thermometer]:
+        out: list[Sensor | Actuator | Thermometer] = []
+        for d in (self.sensor, self.actuator, self.thermometer):
+            if d is not None and all(d is not o for o in out):
+                out.append(d)
+        return out
 
     def connect(self) -> None:
-        self.sensor.connect()
-        if self.actuator is not self.sensor:
-            self.actuator.connect()
+        for device in self._devices():
+            device.connect()
 
     def close(self) -> None:
-        self.sensor.close()
-        if self.actuator is not self.sensor:
-            self.actuator.close()
+        for device in self._devices():
+            device.close()
 
 
 def open_stand(cfg: Config, seed: int | None = None) -> Stand:
@@ -63,8 +69,14 @@ def open_stand(cfg: Config, seed: int | None = None) -> Stand:
 
         assert cfg.actuator.nidaq is not None
         actuator = NidaqActuator(cfg.actuator.nidaq)
+    thermometer: Thermometer | None = None
+    if cfg.thermometer.backend == "modbus":
+        from leveler.drivers.modbus import ModbusThermometer
+
+        assert cfg.thermometer.modbus is not None
+        thermometer = ModbusThermometer(cfg.thermometer.modbus)
     if cfg.sensor.backend != "sim":
-        return Stand(sensor, actuator, None)
+        return Stand(sensor, actuator, None, thermometer)
     # the simulation, and scipy with it, only for a simulated stand: a hardware daemon
     # stays lean (issue 21)
     from leveler.drivers.simulated import SimulatedStand
@@ -75,4 +87,5 @@ def open_stand(cfg: Config, seed: int | None = None) -> Stand:
     sim = SimulatedStand(plant, cfg.actuator.safe_v, hang_at_s=cfg.sim.hang_at_s,
                          hang_for_s=cfg.sim.hang_for_s, fail_at_s=cfg.sim.fail_at_s,
                          faults=cfg.sim.faults)
-    return Stand(sensor=sim, actuator=sim, truth=sim.truth)
+    return Stand(sensor=sim, actuator=sim, truth=sim.truth,
+                 thermometer=sim if cfg.thermometer.backend == "sim" else thermometer)

@@ -26,7 +26,7 @@ from leveler.loop import kernel as kn
 from leveler.loop.clock import VirtualClock
 from leveler.loop.cycle import ENGAGED, IDLE, Loop, Sink
 from leveler.loop.pid import PID
-from leveler.records import Event, Sample, Truth
+from leveler.records import Environment, Event, Sample, Truth
 from leveler.settings import Config
 from leveler.stand import open_stand
 
@@ -46,6 +46,7 @@ class Recorder:
         self.applied_v = array("d")
         self.tilt_rad = array("d")
         self.events: list[Event] = []
+        self.environments: list[Environment] = []  # the thermometer's readings, if any
 
     def extend(self, out: np.ndarray, n: int) -> None:
         """Append the first n cycles of a kernel's output."""
@@ -63,6 +64,9 @@ class Recorder:
 
     def event(self, e: Event, log_time_ns: int) -> None:
         self.events.append(e)
+
+    def environment(self, e: Environment, log_time_ns: int) -> None:
+        self.environments.append(e)
 
 
 @dataclass
@@ -99,7 +103,10 @@ class VirtualStand:
             self.stand.actuator)
         self.recorder = Recorder()
         self.loop = Loop(self.stand.sensor, actuator, PID(cfg.controller.pid_config()),
-                         self.dt_s, [self.recorder, *sinks], self.stand.truth, policy=cfg.loop)
+                         self.dt_s, [self.recorder, *sinks], self.stand.truth, policy=cfg.loop,
+                         thermometer=self.stand.thermometer,
+                         thermometer_interval_s=cfg.thermometer.interval_s,
+                         feedforward=cfg.controller.feedforward())
         self.clock = VirtualClock(self.dt_s, start_wall_ns)
         self.t_s = self.clock.tick()
         self._kernel_mode = kernel
@@ -196,7 +203,7 @@ class _Kernel:
     def unsupported(vs: VirtualStand) -> str:
         """Why the kernel cannot run this stand's cycles ('' when it can): it knows the plain
         simulated stand, one conversion a cycle, no effect stepped sample by sample and a PID
-        without a notch or a double integral."""
+        without a notch or a double integral, no thermometer."""
         sim = vs.stand.sensor
         if not isinstance(sim, SimulatedStand) or vs.loop.actuator is not sim:
             return "not the plain simulated stand (another driver, or a wrapped actuator)"
@@ -213,6 +220,8 @@ class _Kernel:
             return "a notch on the reading"
         if vs.loop.pid.config.gains.ki2:
             return "a double integral"
+        if vs.loop.thermometer is not None:
+            return "a thermometer (read for the temperature feedforward)"
         return ""
 
     # The state's names here are the objects' own, private ones: this class is the one place

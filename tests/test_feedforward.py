@@ -1,8 +1,8 @@
-"""What temperature feedforward could buy (leveler.analysis.feedforward), told by `tune
---suggest --model` for a model with a fitted temperature coupling: nothing on the default
-stand, whose loop holds the temperature's tilt under the sensor floor; several times at
-the mHz on a slow integral-only loop; and nothing reachable where the temperature tilts the
-table beyond the piezo's stroke."""
+"""What temperature feedforward buys (leveler.analysis.feedforward), told by `tune --suggest
+--model` for a model with a fitted temperature coupling: nothing on the default stand,
+whose loop holds the temperature's tilt under the sensor floor; several times at the mHz on
+a slow integral-only loop; and nothing reachable where the temperature tilts the table
+beyond the piezo's stroke. The feedforward in the loop: tests/test_temperature_feedforward.py."""
 
 from __future__ import annotations
 
@@ -60,7 +60,7 @@ def test_tune_suggest_model_tells_it(tmp_path: Path) -> None:
     model.write_text((REPO / "config" / "lab.toml").read_text() + COUPLING.format(k=5e-6))
     proc = subprocess.run([sys.executable, "-m", "leveler.cli", "tune", "--suggest", "--model",
                            str(model), "--config", str(REPO / "config" / "lab.toml"),
-                           "--predict-hours", "24", "--apply", "--socket",
+                           "--predict-hours", "12", "--apply", "--socket",
                            str(tmp_path / "none.sock")],
                           capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
@@ -68,4 +68,6 @@ def test_tune_suggest_model_tells_it(tmp_path: Path) -> None:
     assert "No resonant terms: the loop has too little gain" in out  # the cooler, said
     assert "[plant.effects.temperature_coupling] 5e-06 rad/K through 600 s" in out
     assert "A perfect temperature feedforward would lower the true tilt by up to" in out
+    assert "suggested one, through the model's thermometer" in out
+    assert "lab.toml reads no thermometer, so the feedforward cannot run there" in out
     assert out.rstrip().endswith("nothing to apply"), out  # nothing reached a daemon

@@ -1,30 +1,34 @@
-"""What temperature feedforward could buy against the sensor floor, on a model that names a
-temperature path to the tilt.
+"""Temperature feedforward against a model that names a temperature path to the tilt: the
+paths it takes, and what it buys against the sensor floor.
 
-Feedforward would add -tilt(T) / (tilt per volt) to the command: the temperature's tilt
-through the fitted lag, taken out before the loop sees it. At best it removes that tilt
-exactly, so the most it can buy is the difference between the model run as it is and the
-same model with every temperature path to the tilt cut ([plant.thermal]'s coefficient and
-a fitted [plant.effects.temperature_coupling]), both closed by the same loop over the same
-disturbances. Where the loop already holds the temperature's tilt under the floor the
-sensor's own noise and drift set, nothing is left to buy: the table then sits on what the
-sensor gets wrong, which no feedforward from a thermometer can see. A real feedforward
-does worse than this bound (the fitted gain and lag are uncertain, the thermometer is
-noisy), so a bound near 1x is a clear no.
+The model says tilt = k x lag(T) for each path ([plant.thermal]'s coefficient and lag, a
+fitted [plant.effects.temperature_coupling] with its one or two lags). The feedforward
+(leveler.loop.feedforward) adds gain x lag(T) to the command with gain = -k / (tilt per
+piezo volt), so the piezo takes each path's tilt out before the loop sees it.
+
+What it buys is simulated, not argued: the model run as it is; with the suggested
+feedforward reading the model's thermometer (its noise and resolution, every
+`[thermometer] interval_s`); with every temperature path cut (a perfect feedforward: the
+bound); and with the feedforward off in gain by the model's stated tolerance, all closed by
+the same loop over the same disturbances. Where the loop already holds the temperature's
+tilt under the floor the sensor's own noise and drift set, nothing is left to buy: the
+table then sits on what the sensor gets wrong, which no thermometer can see.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from leveler.settings import Config
+from leveler.loop.feedforward import Feedforward, FeedforwardPath
+from leveler.settings import Config, ThermometerConfig
 from leveler.sim.params import PlantParams
 
 WORTH = 1.2  # a bound under this (current / best, ASD) anywhere: not worth a thermometer path
-ERROR = 0.1  # the relative gain error of a feedforward shown beside the perfect one
+ERROR = 0.1  # the gain error shown beside the perfect one when the model states none
 RAIL_V = 1e-6  # within this of a limit, the piezo is railed
 MAX_RAILED = 1e-3  # a run railed longer than this share is out of range, not short of a model
 
@@ -43,6 +47,41 @@ def temperature_paths(params: PlantParams) -> list[str]:
     return paths
 
 
+def design(params: PlantParams) -> Feedforward | None:
+    """The feedforward that cancels every temperature path of the model, or None if it
+    has none: gain = -k / (tilt per piezo volt), through the path's own lags."""
+    tilt_per_v = params.piezo.gain_m_per_v / params.platform.support_spacing_m
+    paths = []
+    th = params.thermal
+    if th.tilt_per_kelvin_rad_per_k:
+        paths.append(FeedforwardPath(-th.tilt_per_kelvin_rad_per_k / tilt_per_v, th.lag_s))
+    fx = params.effects.temperature_coupling
+    if fx is not None and fx.tilt_per_kelvin_rad_per_k:
+        paths.append(FeedforwardPath(-fx.tilt_per_kelvin_rad_per_k / tilt_per_v, fx.lag_s,
+                                     fx.lag2_s))
+    return Feedforward(tuple(paths)) if paths else None
+
+
+def values(ff: Feedforward) -> dict[str, list[float]]:
+    """The feedforward as tune values ([controller] feedforward_*)."""
+    return {"feedforward_gains_v_per_k": [p.gain_v_per_k for p in ff.paths],
+            "feedforward_lags_s": [p.lag_s for p in ff.paths],
+            "feedforward_lags2_s": [p.lag2_s for p in ff.paths]}
+
+
+def toml_lines(ff: Feedforward) -> list[str]:
+    """The [controller] lines that configure it (what --persist writes)."""
+    return [f"{k} = [{', '.join(f'{x:.6g}' for x in v)}]" for k, v in values(ff).items()]
+
+
+def gain_error(params: PlantParams) -> float:
+    """The relative gain error a feedforward designed from the model carries: the stated
+    tolerances of the thermal tilt and of the tilt per piezo volt, else ERROR."""
+    u = params.uncertainty
+    stated = math.hypot(u.thermal_tilt_rel, u.actuator_path_rel)
+    return stated if stated > 0 else ERROR
+
+
 def scaled_temperature(params: PlantParams, share: float) -> PlantParams:
     """The model with every temperature path to the tilt scaled by `share`: what a
     feedforward leaves that is right but for a relative error of `share` (0: perfect)."""
@@ -56,56 +95,80 @@ def scaled_temperature(params: PlantParams, share: float) -> PlantParams:
 
 @dataclass(frozen=True)
 class Bound:
-    """True tilt ASD [rad/rtHz] at `freqs_hz` with the loop as it is, with a perfect
-    feedforward, and the sensor floor."""
+    """True tilt ASD [rad/rtHz] at `freqs_hz` with the loop as it is, with the suggested
+    feedforward (None: not simulated), with a perfect one, with one `error` off in gain,
+    and the sensor floor."""
 
     duration_s: float
     freqs_hz: np.ndarray
     current: np.ndarray
+    suggested: np.ndarray | None
     best: np.ndarray
-    off: np.ndarray  # with a feedforward ERROR off in gain
+    off: np.ndarray
+    error: float
     floor: np.ndarray
     railed: float  # share of the run the piezo sat on a limit, as it is
 
     def gain(self, by: np.ndarray | None = None) -> tuple[float, float]:
-        """(the most feedforward buys, current / best ASD, and where); with `by`, current /
-        by at that same frequency."""
+        """(the most a perfect feedforward buys, current / best ASD, and where); with `by`,
+        current / by at that same frequency."""
         i = int(np.argmax(self.current / self.best))
         ratio = self.current[i] / (self.best if by is None else by)[i]
         return float(ratio), float(self.freqs_hz[i])
 
+    @property
+    def worth_it(self) -> bool:
+        return self.railed <= MAX_RAILED and self.gain()[0] >= WORTH
 
-def bound(model: Config, duration_s: float, seed: int = 1) -> Bound:
-    """Simulate the model and its perfect-feedforward twin closed by the configured loop."""
+
+def with_feedforward(model: Config, ff: Feedforward, interval_s: float) -> Config:
+    """The model's stand reading its simulated thermometer, `ff` in the loop."""
+    return dataclasses.replace(
+        model, thermometer=ThermometerConfig(backend="sim", interval_s=interval_s),
+        controller=dataclasses.replace(model.controller, **{
+            k: tuple(v) for k, v in values(ff).items()}))
+
+
+def bound(model: Config, duration_s: float, seed: int = 1, ff: Feedforward | None = None,
+          interval_s: float = 1.0) -> Bound:
+    """Simulate the model, its perfect-feedforward twin, one off in gain and, given `ff`,
+    the model with that feedforward, all closed by the configured loop."""
     from leveler.analysis.periodic import floor_tilt
     from leveler.analysis.spectral import asd_at
     from leveler.virtual import run_virtual
 
     rate = model.loop.rate_hz
     freqs = np.array([f for f in np.geomspace(1e-5, 1e-1, 25) if f * duration_s >= 20])
-    runs = [run_virtual(dataclasses.replace(model, plant=scaled_temperature(model.plant, k)),
-                        duration_s, seed, engaged=True) for k in (1.0, 0.0, ERROR)]
+    error = gain_error(model.plant)
+    configs = [dataclasses.replace(model, plant=scaled_temperature(model.plant, k))
+               for k in (1.0, 0.0, error)]
+    if ff is not None:
+        configs.append(with_feedforward(model, ff, interval_s))
+    runs = [run_virtual(c, duration_s, seed, engaged=True) for c in configs]
     floor = floor_tilt(model, len(runs[0].tilt_rad), seed)
-    cur, best, off, fl = (asd_at(x, rate, list(freqs)) for x in
-                          (*(r.tilt_rad for r in runs), floor))
+    asds = [asd_at(x, rate, list(freqs)) for x in (*(r.tilt_rad for r in runs), floor)]
     lo, hi, _ = model.actuator_range_v()
     c = model.controller
     lo, hi = max(lo, c.output_min_v), min(hi, c.output_max_v)
     v = runs[0].applied_v
     railed = float(np.mean((v <= lo + RAIL_V) | (v >= hi - RAIL_V)))
-    return Bound(duration_s, freqs, cur, best, off, fl, railed)
+    return Bound(duration_s, freqs, asds[0], asds[3] if ff is not None else None, asds[1],
+                 asds[2], error, asds[-1], railed)
 
 
-def report(paths: list[str], b: Bound) -> str:
-    """The bound as a table by frequency, and the verdict."""
+def report(paths: list[str], b: Bound, ff: Feedforward | None = None) -> str:
+    """The runs as a table by frequency, and the verdict."""
     lines = ["The model ties the tilt to the temperature: " + "; ".join(paths) + ".",
              f"True tilt on the model ({b.duration_s / 3600:g} h simulated, the same "
-             "disturbances both ways) [nrad/rtHz]:",
-             f"{'':<16}{'as it is':<12}{'perfect feedforward':<22}"
-             f"{f'{ERROR:.0%} off in gain':<18}sensor floor"]
-    for f, c, p, o, fl in zip(b.freqs_hz, b.current, b.best, b.off, b.floor, strict=True):
-        lines.append(f"{f'{f * 1e3:.3g} mHz':<16}{c * 1e9:<12.3g}{p * 1e9:<22.3g}"
-                     f"{o * 1e9:<18.3g}{fl * 1e9:.3g}")
+             "disturbances every way) [nrad/rtHz]:"]
+    cols = [("as it is", b.current)]
+    if b.suggested is not None:
+        cols.append(("suggested", b.suggested))
+    cols += [("perfect", b.best), (f"{b.error:.0%} off in gain", b.off), ("sensor floor", b.floor)]
+    lines.append(f"{'':<14}" + "".join(f"{name:<18}" for name, _ in cols).rstrip())
+    for i, f in enumerate(b.freqs_hz):
+        lines.append(f"{f'{f * 1e3:.3g} mHz':<14}"
+                     + "".join(f"{a[i] * 1e9:<18.3g}" for _, a in cols).rstrip())
     most, where = b.gain()
     if b.railed > MAX_RAILED:
         lines.append(
@@ -113,17 +176,25 @@ def report(paths: list[str], b: Bound) -> str:
             "table further than the actuator reaches, so the loop cannot hold it, and a "
             "feedforward, which drives the same piezo, cannot either (the perfect one above "
             "is not reachable). This stand needs more stroke, or less coupling to the "
-            "temperature.")
+            "temperature. No feedforward is suggested.")
     elif most < WORTH:
         lines.append(
-            f"Temperature feedforward is not worth it on this model: even a perfect one would "
-            f"lower the true tilt by at most {most:.2f}x (at {where * 1e3:.3g} mHz). The loop "
+            f"Temperature feedforward is not worth it on this model down to "
+            f"{b.freqs_hz[0] * 1e3:.3g} mHz (what {b.duration_s / 3600:g} h resolve; a longer "
+            f"--predict-hours looks lower): even a perfect one would lower the true tilt by "
+            f"at most {most:.2f}x (at {where * 1e3:.3g} mHz). The loop "
             "already holds the temperature's tilt under the floor the sensor's own noise and "
-            "drift set; that floor is what is left, and a thermometer cannot see it.")
+            "drift set; that floor is what is left, and a thermometer cannot see it. No "
+            "feedforward is suggested.")
     else:
-        lines.append(
-            f"A perfect temperature feedforward would lower the true tilt by up to {most:.2f}x "
-            f"(at {where * 1e3:.3g} mHz), one {ERROR:.0%} off in gain by {b.gain(b.off)[0]:.2f}x "
-            "there; lag errors and the thermometer's noise cost more. The daemon reads no "
-            "temperature yet, so it is not offered here (issue 21).")
+        text = (f"A perfect temperature feedforward would lower the true tilt by up to "
+                f"{most:.2f}x (at {where * 1e3:.3g} mHz), one {b.error:.0%} off in gain by "
+                f"{b.gain(b.off)[0]:.2f}x there")
+        if b.suggested is not None and ff is not None:
+            text += (f"; the suggested one, through the model's thermometer, by "
+                     f"{b.gain(b.suggested)[0]:.2f}x. Suggested feedforward "
+                     f"({ff.describe()}):\n" + "\n".join(toml_lines(ff)))
+        else:
+            text += "."
+        lines.append(text)
     return "\n".join(lines)

@@ -107,12 +107,11 @@ def load_measured(path: str | Path, model: str | Path | None = None,
     if nbad > _MAX_BAD_FRACTION * n:
         raise LogError(f"{path}: {nbad} of {n} samples faulted or missing; too many to replay")
     y, u = _fill(y, bad), _fill(u, bad_u)
-    temp = None
-    for table in (data.environment, data.truth):
-        if "temperature_k" in table and len(table["temperature_k"]) == n:
-            temp = table["temperature_k"].astype(float)
-            temp = _fill(temp, ~np.isfinite(temp)) if np.isfinite(temp).any() else None
-            break
+    temp = data.per_sample("temperature_k")  # the thermometer's, else the simulation's truth
+    if temp is None and len(data.truth.get("temperature_k", ())) == n:
+        temp = data.truth["temperature_k"].astype(float)
+    if temp is not None:
+        temp = _fill(temp, ~np.isfinite(temp)) if np.isfinite(temp).any() else None
     logged_text = data.metadata.get("leveler", {}).get("config", "")
     if model is not None:
         cfg, text = load_config(model)

@@ -93,12 +93,21 @@ def _modbus(args: argparse.Namespace, cfg: Config, plant: Plant, seed: int,
     from leveler.emulate.modbus import ModbusEmulator
     from leveler.rt import freeze_heap
 
-    with (ModbusEmulator(plant, s, a, host=s.host, port=s.port, transport=s.transport) as emu,
+    th = cfg.thermometer.modbus if cfg.thermometer.backend == "modbus" else None
+    if th is not None and (th.transport, th.host, th.port, th.serial_port) != (
+            s.transport, s.host, s.port, s.serial_port):
+        raise ConfigError(f"{args.config}: the emulator serves one Modbus module: "
+                          "thermometer.modbus needs the sensor's link (transport, host, port, "
+                          "serial_port)")
+    with (ModbusEmulator(plant, s, a, host=s.host, port=s.port, transport=s.transport,
+                         thermometer_cfg=th) as emu,
           _linked({} if link is None else {link: emu.serial_port})):
         where = f"{s.host}:{emu.port}" if link is None else f"Modbus RTU at {link}"
         print(f"leveler emulate modbus: the simulated plant ({args.config}, seed {seed}) on "
               f"{where}; sensor in registers {s.register}..{s.register + s.words - 1}"
-              f", piezo in {a.register}..{a.register + a.words - 1}; Ctrl-C stops", flush=True)
+              f", piezo in {a.register}..{a.register + a.words - 1}"
+              + (f", thermometer in {th.register}..{th.register + th.words - 1}" if th else "")
+              + "; Ctrl-C stops", flush=True)
 
         def inject(f: Fault) -> None:
             emu.inject(f.kind, f.count)  # type: ignore[arg-type]  # checked by check_kinds

@@ -47,7 +47,8 @@ def run(args: argparse.Namespace) -> int:
     writer = None
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        writer = LogWriter(args.out, truth=True, chunk_interval_s=cfg.log.chunk_interval_s,
+        writer = LogWriter(args.out, truth=True, environment=cfg.thermometer.backend != "none",
+                           chunk_interval_s=cfg.log.chunk_interval_s,
                            compression=cfg.log.compression,
                            metadata={"config": text,
                                      "config_path": str(Path(args.config).resolve()),

@@ -85,6 +85,7 @@ def format_status(st: dict[str, Any]) -> str:
         *([f"            notch on the reading at {c['notch_frequency_hz']:.4g} Hz, "
            f"Q {c['notch_q']:g}, depth {c['notch_depth']:g}"]
           if c.get("notch_frequency_hz") else []),
+        *_thermometer_lines(st.get("thermometer"), st["state"]),
         f"loop        {lp['rate_hz']:g} Hz, {lp['cycles']} cycles, period p50/p99/max "
         f"{lp['period_p50_s'] * 1e3:.2f}/{lp['period_p99_s'] * 1e3:.2f}/"
         f"{lp['period_max_s'] * 1e3:.2f} ms, overruns {lp['overruns']}",
@@ -92,6 +93,26 @@ def format_status(st: dict[str, Any]) -> str:
         *_live_lines(st.get("live") or {}),
     ]
     return "\n".join(lines)
+
+
+def _thermometer_lines(th: dict[str, Any] | None, state: str) -> list[str]:
+    """The thermometer's last reading and what the feedforward adds (none configured: [])."""
+    if th is None:
+        return []
+    if th["temperature_k"] is None:
+        reading = "no reading yet"
+    else:
+        reading = f"{th['temperature_k']:.4f} K, {th['age_s']:.1f} s ago"
+    line = f"thermometer {th['backend']}, every {th['interval_s']:g} s: {reading}"
+    if th["errors"]:
+        line += f", {th['errors']} failed reading(s) since start"
+    out = [line]
+    if th["trouble"]:
+        out.append(f"            FAILING: {th['trouble']}; the feedforward holds")
+    if th["feedforward_v"] is not None:
+        out.append(f"            temperature feedforward {th['feedforward_v']:+.4f} V"
+                   + (" (added while engaged)" if state != "engaged" else ""))
+    return out
 
 
 def _live_lines(live: dict[str, Any]) -> list[str]:

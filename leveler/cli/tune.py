@@ -35,8 +35,10 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
         "resonant terms that cancel it. Each comes with its margins over the model's "
         "tolerances and the true tilt a simulated day predicts; --apply switches it on "
         "bumplessly, --persist also writes it to the config file. A fitted temperature "
-        "coupling gets the most a temperature feedforward could buy against the sensor floor "
-        "(told, not applied: the daemon reads no temperature).")
+        "coupling gets a temperature feedforward through its lags (on a daemon with a "
+        "[thermometer]), told beside what a perfect one and one off by the model's tolerance "
+        "would buy against the sensor floor, and none when the loop already holds the "
+        "temperature's tilt under that floor.")
     p.add_argument("--kp", type=float, help="proportional gain [V/m]")
     p.add_argument("--ki", type=float, help="integral gain [V/(m s)]")
     p.add_argument("--kd", type=float, help="derivative gain [V s/m]")
@@ -55,6 +57,18 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--notch-q", type=float, help="the notch's Q: its width is frequency / Q")
     p.add_argument("--notch-depth", type=float, help="the notch's gain at its centre, in "
                    "[0, 1) (0: a full notch)")
+    p.add_argument("--ff-gain", type=float, action="append", default=None, metavar="V_PER_K",
+                   help="a temperature feedforward path's gain [V/K]: the thermometer's "
+                   "reading through --ff-lag (and --ff-lag2) times it is added to the command. "
+                   "One --ff-gain and one --ff-lag per path, repeated for several (e.g. "
+                   "--ff-gain -50 --ff-lag 1800 --ff-gain -25 --ff-lag 600); they replace the "
+                   "running paths, bumplessly. Needs a daemon with a [thermometer]")
+    p.add_argument("--ff-lag", type=float, action="append", default=None, metavar="S",
+                   help="a feedforward path's lag [s] (0: none), one per --ff-gain")
+    p.add_argument("--ff-lag2", type=float, action="append", default=None, metavar="S",
+                   help="a second lag in series [s], one per --ff-gain if given at all")
+    p.add_argument("--ff-off", action="store_true", help="remove the temperature "
+                   "feedforward (bumplessly: what it added moves into the integral)")
     p.add_argument("--persist", action="store_true", help="also write the values to the "
                    "daemon's config file")
     p.add_argument("--force", action="store_true", help="apply gains even if the plant model "
@@ -73,8 +87,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--model", default=None, metavar="FITTED.toml",
                    help="with --suggest: a model naming a mode, a periodic disturbance or a "
                    "temperature coupling (`leveler diagnose LOG` writes LOG.fitted.toml): "
-                   "suggest a notch or resonant terms against it, or tell what feedforward "
-                   "could buy")
+                   "suggest a notch, resonant terms or a temperature feedforward against it")
     p.add_argument("--log", default=None, metavar="LOG",
                    help="with --suggest --model: also replay this log's run with the terms "
                    "added (the replay what-if; typically the log the model was diagnosed from)")
@@ -106,6 +119,30 @@ def _checked(flag: str, key: str, value: float) -> float | str:
     return value
 
 
+def feedforward_values(args: argparse.Namespace) -> dict[str, list[float]]:
+    """--ff-gain/--ff-lag/--ff-lag2 (a path each) or --ff-off as tune values ({}: none)."""
+    gains, lags, lags2 = args.ff_gain or [], args.ff_lag or [], args.ff_lag2 or []
+    if args.ff_off:
+        if gains or lags or lags2:
+            raise ClientError("--ff-off removes the feedforward: give it without --ff-gain, "
+                              "--ff-lag or --ff-lag2")
+        return {"feedforward_gains_v_per_k": [], "feedforward_lags_s": [],
+                "feedforward_lags2_s": []}
+    if not (gains or lags or lags2):
+        return {}
+    if len(lags) != len(gains) or (lags2 and len(lags2) != len(gains)):
+        raise ClientError(f"a feedforward path is one --ff-gain with one --ff-lag (and one "
+                          f"--ff-lag2, if any path has one): got {len(gains)} gain(s), "
+                          f"{len(lags)} lag(s), {len(lags2)} second lag(s)")
+    for flag, xs in (("--ff-gain", gains), ("--ff-lag", lags), ("--ff-lag2", lags2)):
+        for x in xs:
+            if not math.isfinite(x) or (flag != "--ff-gain" and x < 0):
+                raise ClientError(f"{flag} {x!r}: must be a finite number"
+                                  + (" >= 0 [s]" if flag != "--ff-gain" else " [V/K]"))
+    return {"feedforward_gains_v_per_k": gains, "feedforward_lags_s": lags,
+            "feedforward_lags2_s": lags2 or [0.0] * len(gains)}
+
+
 def _shown(value: float | None) -> str:
     return "inf" if value is None else f"{value:g}"  # JSON carries infinity as null
 
@@ -113,6 +150,7 @@ def _shown(value: float | None) -> str:
 def run(args: argparse.Namespace) -> int:
     values = {key: _checked(flag, key, getattr(args, flag)) for flag, key in FLAG_KEYS.items()
               if getattr(args, flag) is not None}
+    values |= feedforward_values(args)
     if args.model is not None and not (args.suggest or args.retrack):
         raise ClientError("--model goes with --suggest (or --retrack)")
     if args.suggest and args.retrack:
@@ -129,17 +167,24 @@ def run(args: argparse.Namespace) -> int:
             return 0
     if not values:
         raise ClientError("nothing to change: give --kp, --ki, --kd, --setpoint, --min-v, "
-                          "--max-v, --slew or --notch-hz/-q/-depth (or --suggest)")
+                          "--max-v, --slew, --notch-hz/-q/-depth, --ff-gain/--ff-lag or "
+                          "--ff-off (or --suggest)")
     with Client(args.socket) as client:
         reply = client.request("tune", persist=args.persist, force=args.force, **values)
         with client.reading():
             c = reply["controller"]
-            print("applied: " + ", ".join(f"{k} = {_shown(c[k])}" for k in values
-                                          if not isinstance(c[k], list))
-                  + ("; resonant terms at " + str(len(c["periodic_gains_v_per_m_s"]))
-                     + f" harmonics of {c['periodic_period_s']:g} s"
-                     if "periodic_gains_v_per_m_s" in values else "")
-                  + ("; written to the config file" if reply["persisted"] else ""))
+            parts = [", ".join(f"{k} = {_shown(c[k])}" for k in values
+                               if not isinstance(c[k], list))]
+            if "periodic_gains_v_per_m_s" in values:
+                parts.append(f"resonant terms at {len(c['periodic_gains_v_per_m_s'])} "
+                             f"harmonics of {c['periodic_period_s']:g} s")
+            if "feedforward_gains_v_per_k" in values:
+                ff = c["feedforward_gains_v_per_k"]
+                parts.append(f"temperature feedforward over {len(ff)} path(s)" if ff
+                             else "temperature feedforward off")
+            if reply["persisted"]:
+                parts.append("written to the config file")
+            print("applied: " + "; ".join(p for p in parts if p))
     return 0
 
 

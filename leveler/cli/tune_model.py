@@ -1,7 +1,7 @@
 """`leveler tune --suggest --model FITTED.toml`: controller additions against what a fitted
-model names (a notch for a mode, resonant terms for a periodic disturbance), each checked
-over the model's tolerances, with what a simulated run of the model predicts they do; and,
-for a temperature coupling, what a feedforward could buy (leveler.analysis.feedforward)."""
+model names (a notch for a mode, resonant terms for a periodic disturbance, a temperature
+feedforward for a temperature coupling), each checked over the model's tolerances where it
+touches the loop's stability, with what a simulated run of the model predicts they do."""
 
 from __future__ import annotations
 
@@ -34,7 +34,7 @@ def suggest_from_model(args: argparse.Namespace) -> dict[str, Any]:
     """Print what the model's named effects call for; returns it as tune values (on top of
     the running config's controller and at its loop rate). A mode is answered first, so
     resonant terms are designed on the loop with its notch."""
-    from leveler.analysis import feedforward, notch, periodic
+    from leveler.analysis import notch, periodic
     from leveler.settings import load_config
 
     config = running_config(args)
@@ -60,13 +60,51 @@ def suggest_from_model(args: argparse.Namespace) -> dict[str, Any]:
         if values:
             print()
         values |= _suggest_periodic(args, at_rate, c, d)
-    if coupled and args.predict_hours > 0:  # what feedforward could buy: told, not applied
-        print()
-        bound = feedforward.bound(dataclasses.replace(
-            at_rate, controller=dataclasses.replace(c, **_tuples(values))),
-            args.predict_hours * 3600.0)
-        print(feedforward.report(feedforward.temperature_paths(model.plant), bound))
+    if coupled:
+        if values:
+            print()
+        values |= _suggest_feedforward(args, config, cfg, dataclasses.replace(
+            at_rate, controller=dataclasses.replace(c, **_tuples(values))))
     return values
+
+
+NO_FEEDFORWARD = {"feedforward_gains_v_per_k": (), "feedforward_lags_s": (),
+                  "feedforward_lags2_s": ()}
+
+
+def _suggest_feedforward(args: argparse.Namespace, config: str, cfg: Config,
+                         model: Config) -> dict[str, Any]:
+    """Print the temperature feedforward the model's paths call for and what it buys;
+    returns it as tune values when it is worth it and the running stand has a thermometer.
+    It is an open-loop path: it cannot change the loop's stability or margins."""
+    from leveler.analysis import feedforward
+
+    ff = feedforward.design(model.plant)
+    assert ff is not None  # the model has a temperature coupling
+    # "as it is": the running loop without any feedforward it already has (the model's
+    # stand may have no thermometer to feed one)
+    model = dataclasses.replace(model, controller=dataclasses.replace(
+        model.controller, **NO_FEEDFORWARD))
+    paths = feedforward.temperature_paths(model.plant)
+    if args.predict_hours > 0:
+        b = feedforward.bound(model, args.predict_hours * 3600.0, ff=ff,
+                              interval_s=cfg.thermometer.interval_s)
+        print(feedforward.report(paths, b, ff))
+        if not b.worth_it:
+            return {}
+    else:
+        print("The model ties the tilt to the temperature: " + "; ".join(paths) + ".\n"
+              f"Suggested feedforward ({ff.describe()}), not simulated (--predict-hours 0):\n"
+              + "\n".join(feedforward.toml_lines(ff)))
+    if cfg.thermometer.backend == "none":
+        print(f"{config} reads no thermometer, so the feedforward cannot run there: add a "
+              "[thermometer] table (backend \"modbus\" with its [thermometer.modbus], or "
+              "\"sim\" on the simulated stand; docs/configuration.md), restart the daemon, "
+              "and suggest again with --apply.")
+        return {}
+    print("It adds to the command outside the loop, so the loop's stability and margins "
+          "stay as they are.")
+    return feedforward.values(ff)
 
 
 def _tuples(values: dict[str, Any]) -> dict[str, Any]:

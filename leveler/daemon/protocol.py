@@ -49,6 +49,10 @@ TUNE_INF_OK = ("slew_v_per_s",)
 PERIODIC_KEYS = ("periodic_period_s", "periodic_gains_v_per_m_s", "periodic_phases_rad",
                  "periodic_radius")
 MAX_HARMONICS = 64
+#: tune arguments of the temperature feedforward (leveler.loop.feedforward): lists of
+#: numbers, a path per gain (at most MAX_HARMONICS)
+FEEDFORWARD_KEYS = ("feedforward_gains_v_per_k", "feedforward_lags_s", "feedforward_lags2_s")
+_LIST_KEYS = ("periodic_gains_v_per_m_s", "periodic_phases_rad", *FEEDFORWARD_KEYS)
 #: the bound on a tune setpoint the request alone can check: a leveling sensor reads
 #: micrometres, so a setpoint of millimetres is a unit slip (1 for 1e-6), not a setting
 SETPOINT_BOUND_M = 1e-3
@@ -202,15 +206,15 @@ def _check_watch(req: dict[str, Any]) -> None:
                             f"got {rate!r}")
 
 
-def _periodic_args(req: dict[str, Any]) -> dict[str, Any]:
-    """The resonant terms' settings of a tune request, type-checked (their consistency is
-    the controller config's to check)."""
+def _list_args(req: dict[str, Any]) -> dict[str, Any]:
+    """The resonant terms' and the feedforward's settings of a tune request, type-checked
+    (their consistency is the controller config's to check)."""
     out: dict[str, Any] = {}
-    for key in PERIODIC_KEYS:
+    for key in (*PERIODIC_KEYS, *FEEDFORWARD_KEYS):
         if key not in req:
             continue
         value = req[key]
-        if key in ("periodic_gains_v_per_m_s", "periodic_phases_rad"):
+        if key in _LIST_KEYS:
             if not isinstance(value, list) or len(value) > MAX_HARMONICS or not all(
                     not isinstance(v, bool) and isinstance(v, int | float)
                     and math.isfinite(v) for v in value):
@@ -227,11 +231,11 @@ def _periodic_args(req: dict[str, Any]) -> dict[str, Any]:
 
 def tune_args(req: dict[str, Any]) -> tuple[dict[str, Any], bool]:
     """The settings of a tune request, type- and sign-checked, and its persist flag."""
-    keys = (*TUNE_KEYS, *PERIODIC_KEYS)
+    keys = (*TUNE_KEYS, *PERIODIC_KEYS, *FEEDFORWARD_KEYS)
     extra = sorted(set(req) - set(keys) - {"v", "verb", "persist", "force"})
     if extra:
         raise ProtocolError(f"tune: unknown key {extra[0]!r}; keys: {', '.join(keys)}")
-    values: dict[str, Any] = _periodic_args(req)
+    values: dict[str, Any] = _list_args(req)
     for key, lower in TUNE_KEYS.items():
         if key not in req:
             continue

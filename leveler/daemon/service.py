@@ -15,6 +15,7 @@ import dataclasses
 import faulthandler
 import functools
 import logging
+import math
 import os
 import pwd
 import queue
@@ -119,6 +120,7 @@ class Daemon:
                     "version": __version__, "started_utc": datetime.now(UTC).isoformat()}
         lc = self.cfg.log
         self.log = RotatingLog(Path(lc.dir), metadata=metadata, truth=self.stand.truth is not None,
+                               environment=self.stand.thermometer is not None,
                                chunk_interval_s=lc.chunk_interval_s, compression=lc.compression,
                                rotate_interval_s=lc.rotate_interval_s,
                                rotate_bytes=lc.rotate_bytes, retry_interval_s=lc.retry_interval_s,
@@ -138,7 +140,10 @@ class Daemon:
                 raise
         sinks = [self.log] if self.live is None else [self.log, self.live]
         self.loop = Loop(self.stand.sensor, self.stand.actuator, pid, self.dt, sinks,
-                         self.stand.truth, policy=self.cfg.loop)
+                         self.stand.truth, policy=self.cfg.loop,
+                         thermometer=self.stand.thermometer,
+                         thermometer_interval_s=self.cfg.thermometer.interval_s,
+                         feedforward=self.cfg.controller.feedforward())
         self._was_engaged = False  # the state a fault interrupted, for resuming after it
         self._reconnect_wait_s = 0.0  # 0: not in fault (or the fault has just come)
         self._next_reconnect = 0.0
@@ -254,6 +259,7 @@ class Daemon:
                         f"{self.config_path} ends mid-line (no newline after {last!r}): a "
                         "file cut short? Its last value may be cut too. To mean it: leveler "
                         "reload --accept-dropped")
+                self._refuse_without_thermometer(new.controller)
                 if not force:
                     self._refuse_unstable(new.plant, self.cfg.controller, new.controller)
             except (ConfigError, ProtocolError) as exc:
@@ -335,6 +341,7 @@ class Daemon:
             "tilt_rad": (s.sensor_m / (pend.amplification * pend.sensor_arm_m)
                          if s is not None else None),
             "controller": dataclasses.asdict(self.cfg.controller),
+            "thermometer": self._thermometer_status(),
             "loop": {"rate_hz": self.cfg.loop.rate_hz, "cycles": self.clock.cycles,
                      "overruns": self.clock.overruns, "scheduler": self.scheduler,
                      "memory": self.memory, "last_cycle_age_s": round(age_s, 3),
@@ -349,6 +356,19 @@ class Daemon:
                          "prefix": self.cfg.epics.prefix, "writable": self.cfg.epics.writable,
                          "interfaces": list(self.cfg.epics.interfaces)}},
         }
+
+    def _thermometer_status(self) -> dict[str, Any] | None:
+        """The last reading and the feedforward, None without a thermometer."""
+        loop = self.loop
+        if loop.thermometer is None:
+            return None
+        r, now_t = loop.temperature, loop.last.t_s if loop.last is not None else math.nan
+        return {"backend": self.cfg.thermometer.backend,
+                "interval_s": self.cfg.thermometer.interval_s,
+                "temperature_k": r.temperature_k if r is not None else None,
+                "age_s": round(now_t - r.t_s, 3) if r is not None else None,
+                "errors": loop.thermometer_errors, "trouble": loop.thermometer_trouble,
+                "feedforward_v": loop.ff.v if loop.ff is not None else None}
 
     # ---- run on the loop thread ----------------------------------------------------
     def _start(self, t: float, who: str) -> str:
@@ -453,7 +473,17 @@ class Daemon:
             new.pid_config()
         except (ValueError, ConfigError) as exc:
             raise ProtocolError(f"tune: {exc}") from None
+        self._refuse_without_thermometer(new)
         return new
+
+    def _refuse_without_thermometer(self, new: ControllerConfig) -> None:
+        """ProtocolError for a feedforward on a daemon that reads no thermometer (one added
+        to the file is opened at the next restart, not by a tune or reload)."""
+        if new.feedforward() is not None and self.loop.thermometer is None:
+            raise ProtocolError(
+                "a temperature feedforward needs a thermometer, and this daemon reads none: "
+                f"add [thermometer] to {self.config_path} and restart it "
+                "(docs/configuration.md)")
 
     def _apply_controller(self, new: ControllerConfig, t: float, reason: str) -> None:
         """Apply gains, setpoint, limits and slew bumplessly; log what changed."""
@@ -475,6 +505,8 @@ class Daemon:
             pid.set_periodic(new.periodic_terms())
         if new.notch() != old.notch():
             pid.set_notch(new.notch())
+        if new.feedforward() != old.feedforward():
+            self.loop.set_feedforward(new.feedforward(), t)
         self.cfg = dataclasses.replace(self.cfg, controller=new)
         if changed:
             self.loop.emit("tune", reason, t, **changed)
@@ -497,7 +529,8 @@ class Daemon:
         diff = {k: list(v) for k, v in config_diff(self.cfg, new).items()}
         live_loop = dataclasses.replace(new.loop, status_interval_s=self.cfg.loop.status_interval_s)
         restart = ["loop"] if live_loop != self.cfg.loop else []
-        restart += [name for name in ("log", "control", "sensor", "actuator", "plant", "sim")
+        restart += [name for name in ("log", "control", "sensor", "actuator", "plant", "sim",
+                                      "thermometer")
                     if getattr(new, name) != getattr(self.cfg, name)]
         self._apply_controller(new.controller, t, f"reload ({who})"
                                + (" (--force: no stability check)" if forced else ""))

@@ -32,7 +32,11 @@ from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from leveler.drivers.modbus_config import ModbusActuatorConfig, ModbusSensorConfig
+from leveler.drivers.modbus_config import (
+    ModbusActuatorConfig,
+    ModbusSensorConfig,
+    ModbusThermometerConfig,
+)
 from leveler.emulate.serial import Pty
 from leveler.sim.plant import Plant
 
@@ -86,6 +90,7 @@ class ModbusEmulator:
     transport "tcp" listens at host:port; "rtu" serves RTU frames on a pty whose client end
     is `serial_port` (set by `start()`; host and port are unused).
     `received_v` lists every piezo voltage written to the actuator registers, in order.
+    With `thermometer_cfg`, its registers serve the plant's plate thermometer too.
     Faults apply to the next requests, one request each: "no_reply" answers only after
     no_reply_s (longer than a client's timeout) on TCP and never on RTU (a late answer on a
     serial line would be taken for the next request's: RTU frames carry no transaction id),
@@ -96,13 +101,18 @@ class ModbusEmulator:
 
     def __init__(self, plant: Plant, sensor_cfg: ModbusSensorConfig,
                  actuator_cfg: ModbusActuatorConfig, host: str = "127.0.0.1", port: int = 0,
-                 *, transport: Literal["tcp", "rtu"] = "tcp", no_reply_s: float = 1.0) -> None:
+                 *, transport: Literal["tcp", "rtu"] = "tcp", no_reply_s: float = 1.0,
+                 thermometer_cfg: ModbusThermometerConfig | None = None) -> None:
         if transport not in ("tcp", "rtu"):
             raise ValueError(f"transport {transport!r}: expected 'tcp' or 'rtu'")
-        s, a = sensor_cfg, actuator_cfg
-        if s.register < a.register + a.words and a.register < s.register + s.words:
-            raise ValueError(f"sensor registers {s.register}+{s.words} overlap actuator "
-                             f"registers {a.register}+{a.words}")
+        s, a, th = sensor_cfg, actuator_cfg, thermometer_cfg
+        channels = [("sensor", s), ("actuator", a)] + ([("thermometer", th)] if th else [])
+        for i, (name, c) in enumerate(channels):
+            for other, o in channels[i + 1:]:
+                if c.register < o.register + o.words and o.register < c.register + c.words:
+                    raise ValueError(f"{name} registers {c.register}+{c.words} overlap "
+                                     f"{other} registers {o.register}+{o.words}")
+        self.thermometer_cfg = th
         self.plant = plant
         self.sensor_cfg = s
         self.actuator_cfg = a
@@ -171,6 +181,9 @@ class ModbusEmulator:
             SimData(s.register, values=[0] * s.words, datatype=DataType.REGISTERS,
                     readonly=True),
             SimData(a.register, values=initial_ao, datatype=DataType.REGISTERS),
+            *([SimData(self.thermometer_cfg.register, values=[0] * self.thermometer_cfg.words,
+                       datatype=DataType.REGISTERS, readonly=True)]
+              if self.thermometer_cfg is not None else []),
         ], action=self._action)
         if self._line is not None:
             self._server = ModbusSerialServer(device, framer=FramerType.RTU,
@@ -221,6 +234,13 @@ class ModbusEmulator:
                 _, value_m, _ = self.plant.measure()
                 counts = min(max(round(s.m_to_counts(value_m)), s.counts_min), s.counts_max)
                 registers[s.register - start:s.register - start + s.words] = s.encode(counts)
+            th = self.thermometer_cfg
+            if th is not None and address < th.register + th.words and th.register < (
+                    address + count):
+                counts = min(max(round(th.k_to_counts(self.plant.thermometer_k())),
+                                 th.counts_min), th.counts_max)
+                registers[th.register - start:th.register - start + th.words] = th.encode(
+                    counts)
             return None
         if address < a.register + a.words and a.register < address + count:
             if (address, count) != (a.register, a.words):

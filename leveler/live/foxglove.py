@@ -18,9 +18,15 @@ from typing import Any
 import numpy as np
 
 from leveler.live.config import LiveConfig, parse_address
-from leveler.log.reader import EVENT_TOPIC, FOXGLOVE_LOG_TOPIC, SAMPLE_TOPIC, TRUTH_TOPIC
+from leveler.log.reader import (
+    ENVIRONMENT_TOPIC,
+    EVENT_TOPIC,
+    FOXGLOVE_LOG_TOPIC,
+    SAMPLE_TOPIC,
+    TRUTH_TOPIC,
+)
 from leveler.log.writer import SCHEMAS, encode, encode_event, foxglove_log
-from leveler.records import Event, Sample, Truth
+from leveler.records import Environment, Event, Sample, Truth
 from leveler.rt import background_thread, on_normal_thread
 from leveler.typed_config import ConfigError
 
@@ -67,7 +73,8 @@ class FoxgloveStream:
                               ) from None
         self.url = f"ws://{host}:{self.server.port}"
         channels: dict[str, Any] = {}
-        for topic in (SAMPLE_TOPIC, TRUTH_TOPIC, EVENT_TOPIC, FOXGLOVE_LOG_TOPIC):
+        for topic in (SAMPLE_TOPIC, TRUTH_TOPIC, ENVIRONMENT_TOPIC, EVENT_TOPIC,
+                      FOXGLOVE_LOG_TOPIC):
             name, schema = SCHEMAS[topic]
             channels[topic] = self._channel(foxglove, topic, name, schema)
         channels[ASD_TOPIC] = self._channel(foxglove, ASD_TOPIC, "leveler.LiveAsd", ASD_SCHEMA)
@@ -96,6 +103,9 @@ class FoxgloveStream:
 
     def truth(self, t: Truth, log_time_ns: int) -> None:
         self._queue.append((TRUTH_TOPIC, t, log_time_ns))
+
+    def environment(self, e: Environment, log_time_ns: int) -> None:
+        self._queue.append((ENVIRONMENT_TOPIC, e, log_time_ns))
 
     def event(self, e: Event, log_time_ns: int) -> None:
         self._queue.append((EVENT_TOPIC, e, log_time_ns))

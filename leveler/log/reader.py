@@ -20,7 +20,7 @@ import re
 import struct
 import zlib
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field, fields
+from dataclasses import MISSING, dataclass, field, fields
 from io import BytesIO
 from pathlib import Path
 from typing import IO
@@ -80,6 +80,19 @@ class LogData:
     thrust_stand: dict[str, np.ndarray] = field(default_factory=dict)
     units: dict[str, str] = field(default_factory=dict)  # field -> unit, from the schemas
     live: bool = False  # a running writer holds the file: read up to its last whole chunk
+
+    def per_sample(self, key: str) -> np.ndarray | None:
+        """An environment column with one value per sample: a record holds from its
+        cycle (seq) until the next one, as the daemon writes them at each thermometer
+        reading; NaN before the first. None without that column."""
+        env, seq = self.environment, self.samples.get("seq")
+        if key not in env or seq is None or not len(env[key]):
+            return None
+        values = env[key].astype(float)
+        if len(values) == len(seq):
+            return values
+        at = np.searchsorted(env["seq"], seq, side="right") - 1
+        return np.where(at >= 0, values[np.maximum(at, 0)], np.nan)
 
 
 def hold(f: IO[bytes]) -> None:
@@ -236,19 +249,26 @@ def _split(data: bytes) -> Iterator[McapRecord | _Messages]:
 
 
 def _columns(
-    payloads: list[bytes], times: list[int], types: dict[str, str]
+    payloads: list[bytes], times: list[int], types: dict[str, str],
+    defaults: dict[str, object] | None = None,
 ) -> dict[str, np.ndarray]:
     """Turn a batch of JSON messages into numpy columns, typed by the record class.
 
     JSON has no NaN/Inf: orjson wrote them as null, which np.float64 reads back as NaN.
+    A field the record class gives a default came later than the topic: a log written
+    before it lacks it and reads as that default.
     """
     rows = orjson.loads(b"[" + b",".join(payloads) + b"]")
-    missing = [k for k in types if k not in rows[0]]
+    defaults = defaults or {}
+    missing = [k for k in types if k not in rows[0] and k not in defaults]
     if missing:  # (a later message lacking one is a KeyError below)
         raise ValueError(f"a message lacks {', '.join(missing)}")
     cols = {"log_time_ns": np.array(times, dtype=np.int64)}
     for key in rows[0]:
         cols[key] = np.array([r[key] for r in rows], dtype=_DTYPES.get(types.get(key, "")))
+    for key, value in defaults.items():
+        if key not in cols:
+            cols[key] = np.full(len(rows), value, dtype=_DTYPES.get(types[key]))
     return cols
 
 
@@ -257,13 +277,15 @@ class _Table:
 
     def __init__(self, record_type: type) -> None:
         self.types = {f.name: str(f.type) for f in fields(record_type)}
+        self.defaults = {f.name: f.default for f in fields(record_type)
+                         if f.default is not MISSING}
         self.payloads: list[bytes] = []
         self.times: list[int] = []
         self.parts: list[dict[str, np.ndarray]] = []
 
     def convert(self, at_least: int = 1) -> None:
         if len(self.payloads) >= at_least:
-            self.parts.append(_columns(self.payloads, self.times, self.types))
+            self.parts.append(_columns(self.payloads, self.times, self.types, self.defaults))
             self.payloads, self.times = [], []
 
     def result(self) -> dict[str, np.ndarray]:

@@ -40,7 +40,7 @@ from typing import Literal
 
 from leveler.log.reader import LogError
 from leveler.log.writer import LogWriter
-from leveler.records import Event, Sample, Truth
+from leveler.records import Environment, Event, Sample, Truth
 from leveler.rt import background_thread
 from leveler.typed_config import positive
 
@@ -151,6 +151,7 @@ class RotatingLog:
         *,
         metadata: dict[str, str],
         truth: bool,
+        environment: bool = False,
         chunk_interval_s: float = 1.0,
         compression: str = "zstd",
         rotate_interval_s: float = 86400.0,
@@ -175,7 +176,8 @@ class RotatingLog:
         self._metadata = dict(metadata)
         self._truth = truth
         self._new_writer = partial(LogWriter, chunk_interval_s=chunk_interval_s,
-                                   compression=compression, truth=truth)
+                                   compression=compression, truth=truth,
+                                   environment=environment)
         self._rotate_interval = rotate_interval_s
         self._rotate_bytes = rotate_bytes
         self._retry_interval = retry_interval_s
@@ -275,6 +277,17 @@ class RotatingLog:
                     w.truth(t, log_time_ns)
                 except LogError as e:
                     self._fail(w, e)
+
+    def environment(self, e: Environment, log_time_ns: int) -> None:
+        """Hand one environment record on (a thermometer reading); lost silently while
+        logging is down, as samples are."""
+        with self._lock:
+            w = self._writer
+            if w is not None:
+                try:
+                    w.environment(e, log_time_ns)
+                except LogError as err:
+                    self._fail(w, err)
 
     def event(self, e: Event, log_time_ns: int) -> None:
         """Hand one event on; while logging is down it is kept for the next file."""

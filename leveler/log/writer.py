@@ -122,6 +122,8 @@ _ENVIRONMENT_FIELDS: dict[str, tuple[str, str]] = {
     "seq": ("integer", "cycle number of the matching sample"),
     "t_s": ("number", "loop time since start [s]"),
     "temperature_k": ("number", "measured table temperature [K]" + _NULL),
+    "feedforward_v": ("number", "temperature feedforward added to the command while "
+                      "engaged, from this record on [V]" + _NULL),
 }
 _THRUST_STAND_FIELDS: dict[str, tuple[str, str]] = {
     "seq": ("integer", "row number of the recording"),

@@ -5,8 +5,10 @@ escapes a cycle. One bad reply (a garbled line, a Modbus exception, a timeout) i
 logged and the actuator holds its voltage for that cycle; `fault_after_errors` errors in a row
 mean the device is gone: the actuator goes to its safe state, the loop enters `fault` and logs
 why. A reading that arrives but cannot be trusted (NaN, railed, stuck, a spike: `_screen`)
-holds the voltage too, and `fault_after_bad_readings` of them in a row fault. The daemon,
-`leveler sim` and the tests all drive this same class.
+holds the voltage too, and `fault_after_bad_readings` of them in a row fault. A thermometer,
+when there is one, is read every `interval_s` for the temperature feedforward; it is an
+auxiliary device: its failures are logged and hold the feedforward, and never fault the loop.
+The daemon, `leveler sim` and the tests all drive this same class.
 """
 
 from __future__ import annotations
@@ -16,10 +18,20 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
-from leveler.drivers.base import Actuator, Block, DriverError, Reading, Sensor, Status
+from leveler.drivers.base import (
+    Actuator,
+    Block,
+    DriverError,
+    Reading,
+    Sensor,
+    Status,
+    TemperatureReading,
+    Thermometer,
+)
+from leveler.loop.feedforward import Feedforward, FeedforwardFilter
 from leveler.loop.modulation import SquareWave
 from leveler.loop.pid import PID
-from leveler.records import Event, Sample, Truth
+from leveler.records import Environment, Event, Sample, Truth
 from leveler.typed_config import non_negative, positive
 
 
@@ -44,6 +56,8 @@ class LoopConfig:
 
 IDLE, ENGAGED, FAULT, MODULATING = "idle", "engaged", "fault", "modulating"
 ERROR_EVENT_INTERVAL_S = 1.0  # at most one driver_error event per second; the counts are exact
+THERMOMETER_EVENT_INTERVAL_S = 60.0  # at most one thermometer event a minute while it fails
+RESUME_AFTER_READS = 10  # readings missed before the feedforward restarts from the next one
 
 
 class Sink(Protocol):
@@ -55,13 +69,17 @@ class Sink(Protocol):
 
     def event(self, e: Event, log_time_ns: int) -> None: ...
 
+    def environment(self, e: Environment, log_time_ns: int) -> None: ...
+
 
 class Loop:
     """The controller manager: drivers, PID and state, one `cycle(t)` at a time."""
 
     def __init__(self, sensor: Sensor, actuator: Actuator, pid: PID, dt_s: float,
                  sinks: list[Sink], truth: Callable[[int, float], Truth] | None = None,
-                 *, policy: LoopConfig | None = None) -> None:
+                 *, policy: LoopConfig | None = None, thermometer: Thermometer | None = None,
+                 thermometer_interval_s: float = 1.0,
+                 feedforward: Feedforward | None = None) -> None:
         self.sensor = sensor
         self.actuator = actuator
         self.pid = pid
@@ -89,6 +107,31 @@ class Loop:
         self._spikes_in_a_row = 0
         self._last_value_m = math.nan
         self._last_good_m = math.nan
+        self.thermometer = thermometer
+        self.thermometer_interval_s = thermometer_interval_s
+        self._next_temperature_s = -math.inf
+        self.temperature: TemperatureReading | None = None  # the last good reading
+        self.thermometer_errors = 0  # failed or unusable readings, since start
+        self.thermometer_trouble = ""  # why the last reading failed, while they fail
+        self._trouble_since_s = math.nan
+        self._trouble_unreported = 0
+        self._next_trouble_event_s = -math.inf
+        self.ff: FeedforwardFilter | None = None
+        if feedforward is not None:
+            self.set_feedforward(feedforward, -math.inf)
+
+    def set_feedforward(self, feedforward: Feedforward | None, t_s: float) -> None:
+        """Switch the temperature feedforward on, off or to other paths without a bump:
+        what the old one added moves into the PID's integral, and the new one starts from
+        zero at the last reading. ValueError without a thermometer."""
+        if feedforward is not None and self.thermometer is None:
+            raise ValueError("a temperature feedforward needs a thermometer ([thermometer] "
+                             "backend)")
+        self.pid.absorb_feedforward()
+        self.ff = None if feedforward is None else FeedforwardFilter(
+            feedforward, RESUME_AFTER_READS * self.thermometer_interval_s)
+        if self.ff is not None and self.temperature is not None:
+            self.ff.feed(self.temperature.t_s, self.temperature.temperature_k)
 
     def emit(self, kind: str, reason: str, t_s: float, **detail: object) -> None:
         """Log a discrete event to every sink."""
@@ -104,6 +147,8 @@ class Loop:
         if not math.isfinite(measurement):  # the last cycle had no reading (just reset)
             measurement = self.pid.config.setpoint_m  # the first good reading corrects it
         self.pid.engage(measurement, self.held_v)
+        if self.ff is not None:
+            self.ff.rezero()  # the integral holds the present; the feedforward adds changes
         self._transition(ENGAGED, reason, t_s)
 
     def disengage(self, t_s: float, reason: str = "requested") -> None:
@@ -240,6 +285,44 @@ class Loop:
         status = r.status if r.status != Status.OK else Status.INVALID
         return Reading(r.t_s, r.raw_counts, r.value_m, status)
 
+    def _read_temperature(self, t_s: float) -> Environment:
+        """One thermometer reading, fed to the feedforward; failures are counted, logged
+        (the first, then at most once a minute) and hold the feedforward."""
+        assert self.thermometer is not None
+        self._next_temperature_s = t_s + self.thermometer_interval_s - 0.5 * self.dt_s
+        why = ""
+        try:
+            r = self.thermometer.read_temperature(t_s)
+        except DriverError as exc:
+            why = f"thermometer read failed: {exc}"
+        else:
+            if r.status != Status.OK or not math.isfinite(r.temperature_k):
+                why = f"thermometer reading {Status(r.status).name.lower()} ({r.temperature_k!r} K)"
+        held = self.ff.v if self.ff is not None else 0.0
+        if why:
+            self.thermometer_errors += 1
+            self._trouble_unreported += 1
+            if not self.thermometer_trouble:
+                self._trouble_since_s = t_s
+            self.thermometer_trouble = why
+            if t_s >= self._next_trouble_event_s:
+                self.emit("thermometer", f"{why}; feedforward held at {held:+.4g} V", t_s,
+                          since_s=t_s - self._trouble_since_s,
+                          missed=self._trouble_unreported, errors=self.thermometer_errors)
+                self._trouble_unreported = 0
+                self._next_trouble_event_s = t_s + THERMOMETER_EVENT_INTERVAL_S
+            return Environment(self.seq, t_s, math.nan, held)
+        if self.thermometer_trouble:
+            self.emit("thermometer", f"thermometer readings again after "
+                      f"{t_s - self._trouble_since_s:.1f} s; feedforward goes on from "
+                      f"{held:+.4g} V", t_s, missed=self._trouble_unreported)
+            self.thermometer_trouble = ""
+            self._trouble_unreported = 0
+            self._next_trouble_event_s = -math.inf
+        self.temperature = r
+        v = self.ff.feed(t_s, r.temperature_k) if self.ff is not None else 0.0
+        return Environment(self.seq, t_s, r.temperature_k, v)
+
     def cycle(self, t_s: float, wall_ns: int) -> Sample:
         """Run one cycle at loop time t_s (s) and wall time wall_ns; never raises DriverError."""
         self._wall_ns = wall_ns
@@ -252,13 +335,16 @@ class Loop:
             self._driver_error(t_s, "sensor", f"sensor read failed: {exc}")
         else:
             reading = self._screen(reading)
+        env = (self._read_temperature(t_s) if self.thermometer is not None
+               and t_s >= self._next_temperature_s else None)
         pid = self.pid
         p = i = d = 0.0
         saturated = False
         setpoint = pid.config.setpoint_m
         if self.state == ENGAGED and reading.status == Status.OK:
             try:
-                out = pid.update(reading.value_m, self.dt_s)
+                out = pid.update(reading.value_m, self.dt_s,
+                                 0.0 if self.ff is None else self.ff.v)
             except OverflowError as exc:  # an absurd reading or gain: stop, do not guess
                 self._fault(t_s, f"controller fault: {exc}")
                 command = self.held_v
@@ -297,6 +383,9 @@ class Loop:
             truth = self._truth(self.seq, t_s)
             for sink in self.sinks:
                 sink.truth(truth, wall_ns)
+        if env is not None:
+            for sink in self.sinks:
+                sink.environment(env, wall_ns)
         self.seq += 1
         self.last = sample
         return sample

@@ -24,6 +24,10 @@ Design choices, and why:
 * An optional notch (``PIDConfig.notch``, leveler.loop.notch) filters the reading before
   all three terms: the loop stops acting at one frequency (a mode the model lacks). The
   logged ``error_m`` is the setpoint minus the filtered reading, what the terms acted on.
+* A feedforward (``ff_v`` of :meth:`PID.update`, leveler.loop.feedforward) is added to the
+  sum before the limits, so the rails and anti-windup see the whole command; the bumpless
+  rules keep it out of the integral, and :meth:`PID.absorb_feedforward` moves it in when
+  the feedforward is switched off.
 * :meth:`PID.update` runs at up to 1 kHz in Python next to a simulator, so it is plain
   float arithmetic on slotted attributes, allocating only the returned record.
 """
@@ -33,6 +37,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 
+from leveler.loop.feedforward import Feedforward, FeedforwardPath
 from leveler.loop.notch import Notch, NotchFilter
 from leveler.loop.resonant import PeriodicTerms, Resonators
 from leveler.typed_config import non_negative, positive
@@ -131,6 +136,10 @@ class ControllerConfig:
     notch_frequency_hz: float = non_negative(0.0)  # 0: no notch on the reading
     notch_q: float = positive(2.0)
     notch_depth: float = field(default=0.0, metadata={"ge": 0.0, "lt": 1.0})
+    # temperature feedforward (leveler.loop.feedforward), a path per gain; needs [thermometer]
+    feedforward_gains_v_per_k: tuple[float, ...] = ()
+    feedforward_lags_s: tuple[float, ...] = ()  # one per gain
+    feedforward_lags2_s: tuple[float, ...] = ()  # a second lag in series per gain; () none
 
     def __post_init__(self) -> None:
         if not self.output_min_v < self.output_max_v:
@@ -144,6 +153,18 @@ class ControllerConfig:
                 f"({len(self.periodic_phases_rad)} vs {len(self.periodic_gains_v_per_m_s)})")
         if self.periodic_gains_v_per_m_s and not self.periodic_period_s > 0:
             raise ValueError("periodic_gains_v_per_m_s needs periodic_period_s > 0")
+        n = len(self.feedforward_gains_v_per_k)
+        for key in ("feedforward_lags_s", "feedforward_lags2_s"):
+            got = len(getattr(self, key))
+            if got != n and not (key == "feedforward_lags2_s" and got == 0):
+                raise ValueError(f"{key} needs one lag [s] per gain of "
+                                 f"feedforward_gains_v_per_k ({got} vs {n})")
+        for key in ("feedforward_gains_v_per_k", "feedforward_lags_s", "feedforward_lags2_s"):
+            for i, v in enumerate(getattr(self, key)):
+                if not math.isfinite(v) or (v < 0 and key != "feedforward_gains_v_per_k"):
+                    raise ValueError(f"{key}[{i}] must be finite"
+                                     + ("" if key == "feedforward_gains_v_per_k" else " and >= 0")
+                                     + f", got {v!r}")
 
     def periodic_terms(self) -> PeriodicTerms | None:
         if not (self.periodic_period_s > 0 and self.periodic_gains_v_per_m_s):
@@ -155,6 +176,14 @@ class ControllerConfig:
         if not self.notch_frequency_hz > 0:
             return None
         return Notch(self.notch_frequency_hz, self.notch_q, self.notch_depth)
+
+    def feedforward(self) -> Feedforward | None:
+        gains = self.feedforward_gains_v_per_k
+        if not any(gains):
+            return None
+        lags2 = self.feedforward_lags2_s or (0.0,) * len(gains)
+        return Feedforward(tuple(FeedforwardPath(g, lag, lag2) for g, lag, lag2 in zip(
+            gains, self.feedforward_lags_s, lags2, strict=True) if g))
 
     def pid_config(self) -> PIDConfig:
         return PIDConfig(
@@ -174,7 +203,8 @@ class ControllerConfig:
 
 @dataclass(slots=True)
 class PIDOutput:
-    """One update's result; ``p_v + i_v + d_v`` is the command before clamping and slewing.
+    """One update's result; ``p_v + i_v + d_v`` and the feedforward given to the update are
+    the command before clamping and slewing.
 
     Not frozen: a frozen dataclass sets each field through object.__setattr__, which was
     two thirds of an update's cost (bench/pid_speed.py). A fresh one is returned each time.
@@ -186,7 +216,7 @@ class PIDOutput:
     i_v: float
     d_v: float
     command_v: float
-    saturated: bool  # command_v differs from p_v + i_v + d_v (rail or slew limit)
+    saturated: bool  # command_v differs from the sum (rail or slew limit)
 
 
 def _auto_tracking_time(gains: PIDGains) -> float:
@@ -211,6 +241,7 @@ class PID:
         "_config",
         "_df",
         "_err",
+        "_ff",
         "_hi",
         "_i",
         "_kd",
@@ -257,6 +288,7 @@ class PID:
         self._notch: NotchFilter | None = None  # made at the first update, which knows dt
         self._raw = 0.0  # the last reading before the notch (while there is one)
         self._s1 = 0.0  # the error's integral [m s] the double integral feeds on
+        self._ff = 0.0  # the feedforward in the last update [V]
 
     @property
     def config(self) -> PIDConfig:
@@ -285,8 +317,9 @@ class PID:
         tt = config.tracking_time_s
         self._tt = tt if tt > 0.0 else _auto_tracking_time(gains)
 
-    def update(self, measurement_m: float, dt_s: float) -> PIDOutput:
-        """Advance one sample of ``dt_s`` seconds and return the new command.
+    def update(self, measurement_m: float, dt_s: float, ff_v: float = 0.0) -> PIDOutput:
+        """Advance one sample of ``dt_s`` seconds and return the new command; ``ff_v`` [V]
+        is a feedforward added to the terms before the limits.
 
         Raises ValueError for a non-positive or non-finite ``dt_s`` or a non-finite
         measurement: the caller decides what a bad reading means, not the controller.
@@ -326,7 +359,7 @@ class PID:
             # No derivative without a previous sample; preload the integral so that this
             # first output is exactly the one the controller was created with.
             df = 0.0
-            self._i = self._out - p
+            self._i = self._out - p - ff_v
         else:
             # Backward-Euler first-order low-pass of d(measurement)/dt; exact difference
             # quotient when tau == 0.
@@ -337,10 +370,10 @@ class PID:
         res = self._res
         if res is None:
             r = 0.0
-            u = p + i + d
+            u = p + i + d + ff_v
         else:
             r = res.output_v()
-            u = p + i + r + d
+            u = p + i + r + d + ff_v
 
         lo = self._lo
         hi = self._hi
@@ -389,6 +422,7 @@ class PID:
 
         self._out = cmd
         self._u = u
+        self._ff = ff_v
         self._err = error
         self._df = df
         self._prev = measurement_m
@@ -402,7 +436,7 @@ class PID:
         taken in the last update, a one-sample loss the loop makes up at once.
         """
         config = replace(self._config, gains=gains)
-        self._i = self._u - self._r - gains.kp * self._err + gains.kd * self._df
+        self._i = self._u - self._r - self._ff - gains.kp * self._err + gains.kd * self._df
         if not gains.ki2:
             self._s1 = 0.0  # switched on again, the double integral starts from rest
         self._apply(config)
@@ -431,9 +465,15 @@ class PID:
             return
         raw = self._prev if old is None else self._raw
         err = self._sp - raw
-        self._i = self._u - self._r - self._kp * err + self._kd * self._df
+        self._i = self._u - self._r - self._ff - self._kp * err + self._kd * self._df
         self._err = err
         self._prev = raw  # the derivative goes on from the reading the new filter passes
+
+    def absorb_feedforward(self) -> None:
+        """The feedforward goes away (switched off or replaced): what it added last moves
+        into the integral, so the next output, without it, continues from the current one."""
+        self._i += self._ff
+        self._ff = 0.0
 
     def set_setpoint(self, setpoint_m: float) -> None:
         """Set the target; the effective setpoint ramps toward it in later updates."""
@@ -471,6 +511,7 @@ class PID:
         self._notch = None  # restarted from this reading by the next update
         self._s1 = 0.0
         self._df = 0.0
+        self._ff = 0.0  # the caller's feedforward starts from zero at an engage
         self._err = error
         self._out = out
         self._u = out

@@ -87,3 +87,25 @@ class Actuator(Protocol):
         ...
 
     def close(self) -> None: ...
+
+
+@dataclass(frozen=True, slots=True)
+class TemperatureReading:
+    """One thermometer sample: loop time and the temperature [K]; anything but an OK status
+    is no reading (the feedforward then holds)."""
+
+    t_s: float
+    temperature_k: float
+    status: Status = Status.OK
+
+
+@runtime_checkable
+class Thermometer(Protocol):
+    """The table's thermometer, read every `[thermometer] interval_s` for the temperature
+    feedforward. `read_temperature`, not `read`: the simulated stand is a sensor too."""
+
+    def connect(self) -> None: ...
+
+    def read_temperature(self, t_s: float) -> TemperatureReading: ...
+
+    def close(self) -> None: ...

@@ -21,12 +21,13 @@ from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusIOException
 from pymodbus.pdu import ModbusPDU
 
-from leveler.drivers.base import DriverError, Reading, Status
+from leveler.drivers.base import DriverError, Reading, Status, TemperatureReading
 from leveler.drivers.limits import slew_window
 from leveler.drivers.modbus_config import (
     ModbusActuatorConfig,
     ModbusChannelConfig,
     ModbusSensorConfig,
+    ModbusThermometerConfig,
 )
 
 log = logging.getLogger(__name__)
@@ -188,6 +189,27 @@ class ModbusSensor:
         railed = counts <= cfg.counts_min or counts >= cfg.counts_max
         return Reading(t_s, counts, cfg.counts_to_m(counts),
                        Status.RAILED if railed else Status.OK)
+
+    def close(self) -> None:
+        self._link.close()
+
+
+class ModbusThermometer:
+    """The table's temperature from an analog input (a PT100 transmitter's output)."""
+
+    def __init__(self, cfg: ModbusThermometerConfig) -> None:
+        self.cfg = cfg
+        self._link = ModbusLink(cfg)
+
+    def connect(self) -> None:
+        self._link.connect()
+
+    def read_temperature(self, t_s: float) -> TemperatureReading:
+        cfg = self.cfg
+        counts = cfg.decode(self._link.read(cfg.register_kind, cfg.register, cfg.words))
+        railed = counts <= cfg.counts_min or counts >= cfg.counts_max
+        return TemperatureReading(t_s, cfg.counts_to_k(counts),
+                                  Status.RAILED if railed else Status.OK)
 
     def close(self) -> None:
         self._link.close()

@@ -177,3 +177,30 @@ def _check_bounds(cfg: ModbusChannelConfig) -> None:
             raise ValueError(f"{f.name} must be >= {meta['ge']}, got {value!r}")
         if "le" in meta and not value <= meta["le"]:
             raise ValueError(f"{f.name} must be <= {meta['le']}, got {value!r}")
+
+
+@dataclass(frozen=True, slots=True)
+class ModbusThermometerConfig(ModbusChannelConfig):
+    """An analog input reading the table's thermometer through a transmitter (a PT100 on a
+    4-20 mA or 0-10 V transmitter into an AI channel, as the sensor's).
+
+    temperature [K] = offset_k + k_per_v x volts; the defaults read 0-10 V as 0-100 degC.
+    A reading at either end of the counts is railed (a broken wire or an open loop current),
+    not a temperature.
+    """
+
+    register: int = field(default=2, metadata={"ge": 0, "le": MAX_REGISTER})
+    register_kind: Literal["input", "holding"] = "input"
+    value_at_min: float = 0.0
+    value_at_max: float = 10.0
+    k_per_v: float = positive(10.0)
+    offset_k: float = 273.15
+
+    def __post_init__(self) -> None:
+        ModbusChannelConfig.__post_init__(self)
+
+    def counts_to_k(self, counts: int) -> float:
+        return self.offset_k + self.k_per_v * self.counts_to_volts(counts)
+
+    def k_to_counts(self, temperature_k: float) -> float:
+        return self.volts_to_counts((temperature_k - self.offset_k) / self.k_per_v)

@@ -10,14 +10,14 @@ import math
 import time
 from collections.abc import Sequence
 
-from leveler.drivers.base import Block, DriverError, Reading, Status
+from leveler.drivers.base import Block, DriverError, Reading, Status, TemperatureReading
 from leveler.drivers.simulated_config import FaultSpec
 from leveler.records import Truth
 from leveler.sim.plant import Plant
 
 
 class SimulatedStand:
-    """Sensor + actuator backed by `leveler.sim.plant.Plant`."""
+    """Sensor + actuator (+ the plate thermometer) backed by `leveler.sim.plant.Plant`."""
 
     def __init__(self, plant: Plant, safe_v: float, *, hang_at_s: float = math.inf,
                  hang_for_s: float = 0.0, fail_at_s: float = math.inf,
@@ -116,6 +116,17 @@ class SimulatedStand:
     def make_safe(self) -> bool:
         self.plant.command(self._safe_v)
         return True
+
+    def read_temperature(self, t_s: float) -> TemperatureReading:
+        """The plate thermometer at the plant's present step (the loop reads the sensor,
+        which advances the plant, first)."""
+        if not self._connected:
+            raise DriverError("simulated thermometer read before connect()")
+        if self._unplugged or self._fault("disconnect", t_s):
+            raise DriverError("injected disconnect: the thermometer does not answer")
+        if self._fault("thermometer", t_s):
+            raise DriverError("injected thermometer fault: no reply")
+        return TemperatureReading(t_s, self.plant.thermometer_k())
 
     def truth(self, seq: int, t_s: float) -> Truth:
         return self.plant.truth(seq, t_s)

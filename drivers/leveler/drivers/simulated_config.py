@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 FaultKind = Literal["timeout", "nan", "stuck", "railed", "spike", "write_fail", "disconnect",
-                    "clock_step"]
+                    "clock_step", "thermometer"]
 
 
 @dataclass(frozen=True, slots=True)

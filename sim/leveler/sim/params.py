@@ -95,6 +95,10 @@ class ThermalParams:
     daily_phase_rad: float = 0.0
     lag_s: float = non_negative(1800.0)
     tilt_per_kelvin_rad_per_k: float = 1.0e-5
+    # the plate thermometer a [thermometer] backend = "sim" reads: white noise per reading
+    # and its resolution (the step it reports in; 0: none)
+    thermometer_noise_k: float = non_negative(1.0e-3)
+    thermometer_resolution_k: float = non_negative(0.0)
 
 
 @dataclass(frozen=True, slots=True)

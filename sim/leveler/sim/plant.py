@@ -71,6 +71,9 @@ class Plant:
                             for i, e in enumerate(fx.of("response"))
                             if isinstance(e, ExtraResonance)]
         self._extra_m = 0.0
+        # the plate thermometer's noise: a stream of its own, so reading it (or not) leaves
+        # every other draw of a seed unchanged
+        self._rng_thermometer = np.random.default_rng([seed, 0x7E3])
 
     def tilt_rad(self) -> float:
         """True platform tilt now: piezo stroke / spacing + thermal + cooler + offset."""
@@ -149,6 +152,15 @@ class Plant:
             counts = self._top
         value_m = (counts * self._lsb + self._adc_min - self._offset) / self._gain
         return counts, value_m, railed
+
+    def thermometer_k(self) -> float:
+        """What the plate thermometer reads now [K]: the plate temperature, its noise, its
+        resolution."""
+        th = self.params.thermal
+        temp = (self._block.temperature_k[self._i]
+                + th.thermometer_noise_k * float(self._rng_thermometer.standard_normal()))
+        res = th.thermometer_resolution_k
+        return round(temp / res) * res if res > 0 else temp
 
     def truth(self, seq: int, t_s: float) -> Truth:
         b, i = self._block, self._i
