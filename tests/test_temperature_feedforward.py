@@ -12,6 +12,7 @@ import pytest
 from scipy.signal import lfilter
 
 from leveler.analysis import feedforward as ffa
+from leveler.analysis.spectral import asd_at
 from leveler.drivers.simulated_config import FaultSpec
 from leveler.loop.feedforward import Feedforward, FeedforwardFilter, FeedforwardPath
 from leveler.loop.pid import PID, ControllerConfig, PIDConfig, PIDGains
@@ -225,3 +226,37 @@ def test_controller_config_round_trips_the_paths() -> None:
     ff = c.feedforward()
     assert ff is not None and [p.gain_v_per_k for p in ff.paths] == [-50.0, 2.0]  # 0: no path
     assert ControllerConfig().feedforward() is None
+
+
+def test_the_replay_what_if_feeds_the_logs_temperature_forward(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """Replay's what-if of a logged run with the feedforward added (tune --suggest --model
+    --log): fed the log's own thermometer, it takes the temperature's tilt out of the
+    reading at the mHz; a log without a temperature is refused, naming it."""
+    from leveler.analysis.predict import Predictor, load_measured
+    from leveler.analysis.replay import what_if
+    from leveler.log.writer import LogWriter
+
+    coupled = dataclasses.replace(_with_thermometer(LAB, None), plant=dataclasses.replace(
+        LAB.plant, effects=LAB.plant.effects.with_effect(TemperatureCoupling(
+            tilt_per_kelvin_rad_per_k=5e-6, lag_s=600.0))))
+    log = tmp_path / "coupled.mcap"
+    text = (REPO / "config" / "lab.toml").read_text() + '\n[thermometer]\nbackend = "sim"\n'
+    with LogWriter(log, truth=True, environment=True, metadata={"config": text}) as w:
+        run_virtual(coupled, 4 * 3600.0, 5, engaged=True, writer=w)
+    meas = load_measured(str(log), model=None)
+    assert meas.sig.temperature_k is not None
+    pred = Predictor(meas.config.plant, meas)
+    ff = ffa.design(coupled.plant)
+    assert ff is not None and meas.controller is not None
+    with_ff = dataclasses.replace(meas.controller, **{k: tuple(v) for k, v in
+                                                      ffa.values(ff).items()})
+    f = [7e-4, 1e-3, 2e-3]
+    span = slice(3000, None)
+    logged = asd_at(meas.y_m[span], 10.0, f)
+    replayed = asd_at(what_if(meas, pred, with_ff)[span], 10.0, f)
+    assert (logged / replayed > 2).all(), logged / replayed
+    as_is = asd_at(what_if(meas, pred, meas.controller)[span], 10.0, f)
+    assert (abs(as_is / logged - 1) < 0.2).all(), as_is / logged  # the logged loop, replayed
+    meas.sig = dataclasses.replace(meas.sig, temperature_k=None)
+    with pytest.raises(ValueError, match="needs the log's temperature"):
+        what_if(meas, pred, with_ff)

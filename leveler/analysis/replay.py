@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +22,7 @@ from leveler.analysis.diagnose import BANDS_HZ, gap, residual, warmup_samples
 from leveler.analysis.drift import bands, drift, noise_periodogram, terms, verdict
 from leveler.analysis.predict import Measured, Predictor
 from leveler.analysis.spectral import REPORT_FREQS_HZ, asd_or_none
+from leveler.loop.feedforward import FeedforwardFilter
 from leveler.loop.pid import PID, ControllerConfig
 from leveler.sim.pendulum import PendulumModel
 
@@ -29,13 +31,20 @@ def what_if(meas: Measured, pred: Predictor,
             gains: tuple[float, float, float] | ControllerConfig) -> np.ndarray:
     """The sensor reading the logged run would have shown under `gains` (kp, ki, kd in
     place of the logged controller's), or under a whole controller config (resonant terms
-    too). The rest of the controller (filter, slew, limits) is the logged one, not the
-    --model file's, which may be another stand's or an older one."""
+    and a temperature feedforward too: that one fed the log's temperature from its first
+    sample). The rest of the controller (filter, slew, limits) is the logged one, not the
+    --model file's, which may be another stand's or an older one. ValueError for a
+    feedforward on a log without a temperature."""
     p = pred.params
     logged = meas.controller if meas.controller is not None else meas.config.controller
     cfg = gains if isinstance(gains, ControllerConfig) else dataclasses.replace(
         logged, kp_v_per_m=gains[0], ki_v_per_m_s=gains[1], kd_v_s_per_m=gains[2])
     pid = PID(cfg.pid_config())
+    ff, temp = cfg.feedforward(), meas.sig.temperature_k
+    if ff is not None and temp is None:
+        raise ValueError(f"{meas.path}: a temperature feedforward needs the log's temperature, "
+                         "and it has none")
+    fed = None if ff is None else FeedforwardFilter(ff, math.inf)
     pend = PendulumModel(dataclasses.replace(p.pendulum, model="linear"), meas.dt_s)
     kv = p.piezo.gain_m_per_v / p.platform.support_spacing_m
     arm, dt = p.pendulum.sensor_arm_m, meas.dt_s
@@ -48,7 +57,8 @@ def what_if(meas: Measured, pred: Predictor,
     for n, (y0, u0) in enumerate(zip(y_log, u_log, strict=True)):
         y = y0 + arm * pend.theta  # the model's response to the change in voltage so far
         out[n] = y
-        target = min(max(pid.update(y, dt).command_v, lo), hi)
+        v = 0.0 if fed is None else fed.feed(n * dt, float(temp[n]))  # type: ignore[index]
+        target = min(max(pid.update(y, dt, v).command_v, lo), hi)
         u += min(max(target - u, -max_dv), max_dv)
         pend.step(kv * (u - u0))
     return out

@@ -12,7 +12,6 @@ from typing import TYPE_CHECKING, Any
 
 from leveler.daemon.client import Client, ClientError
 from leveler.loop.pid import ControllerConfig
-from leveler.loop.resonant import PeriodicTerms
 from leveler.settings import Config
 
 if TYPE_CHECKING:  # the analysis (python-control) is imported when a suggestion is made
@@ -104,7 +103,13 @@ def _suggest_feedforward(args: argparse.Namespace, config: str, cfg: Config,
         return {}
     print("It adds to the command outside the loop, so the loop's stability and margins "
           "stay as they are.")
+    if args.log is not None:
+        print(_replayed(args.log, args.model, feedforward.values(ff),
+                        [(f, "") for f in FEEDFORWARD_HZ], "the feedforward"))
     return feedforward.values(ff)
+
+
+FEEDFORWARD_HZ = (3e-4, 5e-4, 1e-3, 2e-3)  # where a thermal path's tilt lives
 
 
 def _tuples(values: dict[str, Any]) -> dict[str, Any]:
@@ -165,7 +170,8 @@ def _suggest_periodic(args: argparse.Namespace, model: Config, c: ControllerConf
                                 args.predict_hours * 3600.0)
     print(periodic.report(d, terms, c, ours, theirs, pred))
     if args.log is not None:
-        print(_replayed(args.log, args.model, terms))
+        print(_replayed(args.log, args.model, values,
+                        [(h / terms.period_s, f" (line {h})") for h in range(1, 6)], "the terms"))
     if not theirs.ok:
         print(f"note: the current loop itself misses {periodic.MIN_GAIN_MARGIN_DB:g} dB / "
               f"{periodic.MIN_PHASE_MARGIN_DEG:g} deg on this model; the terms are judged "
@@ -176,9 +182,10 @@ def _suggest_periodic(args: argparse.Namespace, model: Config, c: ControllerConf
     return values
 
 
-def _replayed(log: str, model: str, terms: PeriodicTerms) -> str:
-    """The replay what-if of `log` with the terms added to its logged controller: the
-    reading at the disturbance's first lines, as logged and as predicted."""
+def _replayed(log: str, model: str, values: dict[str, Any], lines: list[tuple[float, str]],
+              what: str) -> str:
+    """The replay what-if of `log` with `values` (tune values) on its logged controller:
+    the reading at `lines` ([Hz], label), as logged and as predicted."""
     from leveler.analysis.diagnose import warmup_samples
     from leveler.analysis.predict import Predictor, load_measured
     from leveler.analysis.replay import what_if
@@ -191,27 +198,26 @@ def _replayed(log: str, model: str, terms: PeriodicTerms) -> str:
         raise ClientError(f"--log: {exc}") from None
     if meas.controller is None:
         raise ClientError(f"--log {log}: it does not say what its controller was (not a "
-                          "leveler log), so there is nothing to add the terms to")
+                          f"leveler log), so there is nothing to add {what} to")
     pred = Predictor(meas.config.plant, meas, ringing=True)
     span = slice(warmup_samples(meas, pred), len(meas.y_m))
-    with_terms = dataclasses.replace(
-        meas.controller, periodic_period_s=terms.period_s,
-        periodic_gains_v_per_m_s=terms.gains_v_per_m_s, periodic_phases_rad=terms.phases_rad,
-        periodic_radius=terms.radius)
     fs = 1.0 / meas.dt_s
     y = meas.y_m[span]
-    lines = [h / terms.period_s for h in range(1, 6) if h / terms.period_s * len(y) / fs >= 20]
+    lines = [(f, label) for f, label in lines if f * len(y) / fs >= 20]
     if not lines:
-        return f"(--log {log}: too short to resolve the disturbance's lines)"
-    logged = asd_at(y, fs, lines)
-    replayed = asd_at(what_if(meas, pred, with_terms)[span], fs, lines)
-    out = [f"\nOn {log}'s own run (the replay what-if: its logged controller plus the terms; "
+        return f"(--log {log}: too short to resolve the frequencies it would act at)"
+    try:
+        replayed = what_if(meas, pred, dataclasses.replace(meas.controller, **_tuples(values)))
+    except ValueError as exc:
+        raise ClientError(f"--log: {exc}") from None
+    freqs = [f for f, _ in lines]
+    logged = asd_at(y, fs, freqs)
+    out = [f"\nOn {log}'s own run (the replay what-if: its logged controller plus {what}; "
            "the reading) [nm/rtHz]:", f"{'':<34}{'suggested':<22}as logged"]
-    out += [f"{'ASD at ' + f'{f * 1e3:.3g} mHz (line {j + 1})':<34}{a * 1e9:<22.3g}{b * 1e9:.3g}"
-            for j, (f, a, b) in enumerate(zip(lines, replayed, logged, strict=True))]
+    out += [f"{f'ASD at {f * 1e3:.3g} mHz{label}':<34}{a * 1e9:<22.3g}{b * 1e9:.3g}"
+            for (f, label), a, b in zip(lines, asd_at(replayed[span], fs, freqs), logged,
+                                        strict=True)]
     return "\n".join(out)
-
-
 
 
 MIN_DRIFT_REL = 0.002  # a retracked period this close to the terms' keeps them
