@@ -94,3 +94,12 @@ def test_a_band_below_the_noise_that_comes_back_to_it_is_not_worse() -> None:
     assert worse_band(c) == ""
     c["1-10 mHz"] = BandChange(before=0.5, after=4.0, rise_sigma=60.0, gain=-4000.0)
     assert "1-10 mHz" in worse_band(c)
+
+
+def test_a_candidate_that_explains_nothing_anywhere_is_refused_with_a_reason() -> None:
+    """Every band's gain <= 0: the share of what it explains elsewhere is no number (it
+    divided by zero and crashed a diagnosis of a thermometer-fed log)."""
+    why = worse_band({"1-10 mHz": BandChange(1.0, 3.0, 10.0, -2.0, True),
+                      "10-100 mHz": BandChange(1.0, 1.0, 0.0, 0.0, True)})
+    assert why.startswith("makes the 1-10 mHz band worse") and why.endswith(
+        "and it explains nothing elsewhere"), why

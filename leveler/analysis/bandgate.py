@@ -88,8 +88,9 @@ def worse_band(changes: dict[str, BandChange]) -> str:
         if (c.judged and c.rise_sigma > WORSE_SIGMA
                 and c.after > (1 + WORSE_REL) * max(c.before, 1.0)
                 and -c.gain > WORSE_SHARE * explained):
+            share = (f"{-c.gain / explained:.0%} of what it explains elsewhere"
+                     if explained > 0 else "and it explains nothing elsewhere")
             return (f"makes the {name} band worse on the held-out part: residual power "
                     f"{c.before:.3g} -> {c.after:.3g} of the noise ({c.rise_sigma:.1f} "
-                    f"standard errors), {-c.gain / explained:.0%} of what it explains "
-                    f"elsewhere")
+                    f"standard errors), {share}")
     return ""
