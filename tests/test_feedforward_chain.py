@@ -70,5 +70,7 @@ def test_diagnose_suggest_apply_and_the_temperature_leaves_the_tilt(tmp_path: Pa
     rate = cfg.loop.rate_hz
     floor = asd_at(floor_tilt(cfg, len(before), SEED), rate, BAND_HZ)
     was, now = (asd_at(x, rate, BAND_HZ) / floor for x in (before, after))
+    print(f"named: {named[0]['params']}\ntrue tilt over the floor at {BAND_HZ} Hz: "
+          f"before {np.round(was, 2)}, after {np.round(now, 2)}")
     assert (was > 3).all(), was  # the temperature's tilt stood over the floor
     assert (now < 1.5).all() and (now < was / 3).all(), (was, now)  # and no longer does
