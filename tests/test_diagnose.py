@@ -102,7 +102,9 @@ CASES: dict[str, Case] = {
         2.0, (0.01, 0.1), {"step_m": 0.08},
         {"dither_v": 5.0, "dither_period_s": 120.0, "dither_shape": "triangle"}, shrink=1.3),
 }
-FAST = ("periodic_disturbance", "adc_quantization")
+# make test's own-generator families; the periodic one is test_cli_json_contract's sawtooth,
+# the rest make test-slow's (test_hidden_effect_is_found)
+FAST = ("adc_quantization",)
 
 
 def _integral_only(tmp_path: Path) -> tuple[Any, str]:
@@ -310,7 +312,7 @@ def test_imported_quiet_loop_without_temperature(tmp_path: Path,
     assert _imported(tmp_path, None, capsys) == []
 
 
-@pytest.mark.slow  # 30 s; the periodic family stays in make test (test_hidden_effect_is_found_fast)
+@pytest.mark.slow  # 30 s; the periodic family stays in make test (test_cli_json_contract)
 def test_imported_loop_without_temperature_names_a_sawtooth(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     truth = PeriodicDisturbance(shape="sawtooth", period_s=333.0, peak_to_peak_rad=2e-7,

@@ -42,6 +42,7 @@ def test_a_delay_is_not_taken_for_a_mode_at_the_pendulum(tmp_path: Path) -> None
     assert d.effects[0].effect.delay_s == pytest.approx(truth["delay_s"], rel=0.3)  # type: ignore[attr-defined]
 
 
+@pytest.mark.slow  # 35 s; scored by bench-diagnose, its period by test_retrack's sawtooths
 def test_a_jittered_sawtooth_is_named_and_the_gap_shrinks(tmp_path: Path) -> None:
     """A 184 s asymmetric sawtooth with 3.4 % period jitter, fitted as a sine: its
     refinement with the knobs had moved it to 187 s at a quarter of its size (gap 111 ->
