@@ -114,7 +114,7 @@ def test_switching_the_feedforward_on_and_off_in_the_loop_is_bumpless() -> None:
         vs.loop.engage(vs.t_s)
         _after_a_reading(vs)
     for vs in stands[1:]:
-        vs.loop.set_feedforward(ff, vs.t_s)
+        vs.loop.set_feedforward(ff)
     first = [vs.step().command_v for vs in stands]
     assert first[1] == first[0] == first[2]
     for vs in stands:
@@ -123,7 +123,7 @@ def test_switching_the_feedforward_on_and_off_in_the_loop_is_bumpless() -> None:
         _after_a_reading(vs)
     assert abs(stands[1].loop.ff.v) > 0.1, stands[1].loop.ff.v  # it is doing something
     assert abs(stands[1].loop.last.command_v - stands[0].loop.last.command_v) > 0.1
-    stands[2].loop.set_feedforward(None, stands[2].t_s)
+    stands[2].loop.set_feedforward(None)
     on, off = stands[1].step().command_v, stands[2].step().command_v
     assert off == pytest.approx(on, abs=1e-9)
     for vs in stands:

@@ -506,7 +506,7 @@ class Daemon:
         if new.notch() != old.notch():
             pid.set_notch(new.notch())
         if new.feedforward() != old.feedforward():
-            self.loop.set_feedforward(new.feedforward(), t)
+            self.loop.set_feedforward(new.feedforward())
         self.cfg = dataclasses.replace(self.cfg, controller=new)
         if changed:
             self.loop.emit("tune", reason, t, **changed)

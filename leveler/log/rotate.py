@@ -270,24 +270,22 @@ class RotatingLog:
         """Hand one truth record on (simulation); lost silently while logging is down."""
         if not self._truth:
             raise LogError(f"{self.directory}: truth topic not enabled (truth=True)")
-        with self._lock:
-            w = self._writer
-            if w is not None:
-                try:
-                    w.truth(t, log_time_ns)
-                except LogError as e:
-                    self._fail(w, e)
+        self._optional(lambda w: w.truth(t, log_time_ns))
 
     def environment(self, e: Environment, log_time_ns: int) -> None:
         """Hand one environment record on (a thermometer reading); lost silently while
-        logging is down, as samples are."""
+        logging is down, as truth is."""
+        self._optional(lambda w: w.environment(e, log_time_ns))
+
+    def _optional(self, put: Callable[[LogWriter], None]) -> None:
+        """A record of an optional topic to the file being written, if any."""
         with self._lock:
             w = self._writer
             if w is not None:
                 try:
-                    w.environment(e, log_time_ns)
-                except LogError as err:
-                    self._fail(w, err)
+                    put(w)
+                except LogError as e:
+                    self._fail(w, e)
 
     def event(self, e: Event, log_time_ns: int) -> None:
         """Hand one event on; while logging is down it is kept for the next file."""

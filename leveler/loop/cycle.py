@@ -118,9 +118,9 @@ class Loop:
         self._next_trouble_event_s = -math.inf
         self.ff: FeedforwardFilter | None = None
         if feedforward is not None:
-            self.set_feedforward(feedforward, -math.inf)
+            self.set_feedforward(feedforward)
 
-    def set_feedforward(self, feedforward: Feedforward | None, t_s: float) -> None:
+    def set_feedforward(self, feedforward: Feedforward | None) -> None:
         """Switch the temperature feedforward on, off or to other paths without a bump:
         what the old one added moves into the PID's integral, and the new one starts from
         zero at the last reading. ValueError without a thermometer."""

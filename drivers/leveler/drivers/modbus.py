@@ -173,6 +173,14 @@ def _make_client(cfg: ModbusChannelConfig) -> ModbusTcpClient | ModbusSerialClie
                               timeout=cfg.timeout_s, retries=cfg.retries)
 
 
+def _input(link: ModbusLink, cfg: ModbusSensorConfig | ModbusThermometerConfig
+           ) -> tuple[int, Status]:
+    """An analog input's counts, railed at either end of its range."""
+    counts = cfg.decode(link.read(cfg.register_kind, cfg.register, cfg.words))
+    railed = counts <= cfg.counts_min or counts >= cfg.counts_max
+    return counts, Status.RAILED if railed else Status.OK
+
+
 class ModbusSensor:
     """Displacement from an analog input module (ADAM-6017 style)."""
 
@@ -184,11 +192,8 @@ class ModbusSensor:
         self._link.connect()
 
     def read(self, t_s: float) -> Reading:
-        cfg = self.cfg
-        counts = cfg.decode(self._link.read(cfg.register_kind, cfg.register, cfg.words))
-        railed = counts <= cfg.counts_min or counts >= cfg.counts_max
-        return Reading(t_s, counts, cfg.counts_to_m(counts),
-                       Status.RAILED if railed else Status.OK)
+        counts, status = _input(self._link, self.cfg)
+        return Reading(t_s, counts, self.cfg.counts_to_m(counts), status)
 
     def close(self) -> None:
         self._link.close()
@@ -205,11 +210,8 @@ class ModbusThermometer:
         self._link.connect()
 
     def read_temperature(self, t_s: float) -> TemperatureReading:
-        cfg = self.cfg
-        counts = cfg.decode(self._link.read(cfg.register_kind, cfg.register, cfg.words))
-        railed = counts <= cfg.counts_min or counts >= cfg.counts_max
-        return TemperatureReading(t_s, cfg.counts_to_k(counts),
-                                  Status.RAILED if railed else Status.OK)
+        counts, status = _input(self._link, self.cfg)
+        return TemperatureReading(t_s, self.cfg.counts_to_k(counts), status)
 
     def close(self) -> None:
         self._link.close()
