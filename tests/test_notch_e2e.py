@@ -11,6 +11,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from leveler.analysis.periodic import floor_tilt
 from leveler.analysis.spectral import asd_at
@@ -29,6 +30,7 @@ def _sim(config: Path, out: Path) -> np.ndarray:
     return read_log(out).truth["tilt_rad"]
 
 
+@pytest.mark.slow  # 18 s; make test-slow (make test: test_periodic_e2e's chain, test_notch)
 def test_diagnose_suggest_apply_and_the_mode_leaves_the_tilt(tmp_path: Path, start_daemon) -> None:  # type: ignore[no-untyped-def]
     truth = tmp_path / "truth.toml"
     truth.write_text((REPO / "config" / "sim.toml").read_text() + MODE)
