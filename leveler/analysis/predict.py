@@ -79,7 +79,9 @@ def _config_from_text(text: str, where: str) -> Config:
 def load_measured(path: str | Path, model: str | Path | None = None,
                   progress: Callable[[float], None] | None = None) -> Measured:
     """Read a log (and the model to replay it against); clear errors for unusable logs.
-    `progress`: told the fraction of the log read (read_log)."""
+    Ticks a late real-time loop skipped are put back: the reading interpolated, the
+    voltage held, counted with the faulted samples. `progress`: told the fraction of the
+    log read (read_log)."""
     path = str(path)
     data = read_log(path, progress)
     s = data.samples
@@ -97,20 +99,29 @@ def load_measured(path: str | Path, model: str | Path | None = None,
                        "(replay needs a contiguous log)")
     t = s["t_s"].astype(float)
     dt = float(np.median(np.diff(t)))
-    if not dt > 0 or np.max(np.abs(np.diff(t) - dt)) > 0.01 * dt:
+    # A real-time loop that wakes more than a period late skips the deadlines it missed
+    # (loop.clock): its samples sit on the period's grid with ticks left out.
+    k = np.rint((t - t[0]) / dt).astype(np.int64) if dt > 0 else np.zeros(n, np.int64)
+    if not dt > 0 or np.any(np.diff(k) < 1) or np.max(np.abs(t - t[0] - k * dt)) > 0.01 * dt:
         raise LogError(f"{path}: samples are not uniformly spaced (median {dt:g} s)")
-    y = s["sensor_m"].astype(float)
-    bad = ~np.isfinite(y) | (s["status"] != 0)
-    u = s["applied_v"].astype(float)
+    at = np.searchsorted(k, np.arange(k[-1] + 1), side="right") - 1  # the sample in force
+    skipped = np.ones(len(at), bool)
+    skipped[k] = False
+    y = np.where(skipped, np.nan, s["sensor_m"].astype(float)[at])  # no reading: filled
+    bad = ~np.isfinite(y) | (s["status"][at] != 0)
+    u = s["applied_v"].astype(float)[at]  # the piezo held its voltage through a skipped tick
     bad_u = ~np.isfinite(u)
     nbad = int(np.count_nonzero(bad | bad_u))
-    if nbad > _MAX_BAD_FRACTION * n:
-        raise LogError(f"{path}: {nbad} of {n} samples faulted or missing; too many to replay")
+    if nbad > _MAX_BAD_FRACTION * len(at):
+        raise LogError(f"{path}: {nbad} of {len(at)} samples faulted or missing; too many to "
+                       "replay")
     y, u = _fill(y, bad), _fill(u, bad_u)
+    t = t[0] + np.arange(len(at)) * dt
     temp = data.per_sample("temperature_k")  # the thermometer's, else the simulation's truth
     if temp is None and len(data.truth.get("temperature_k", ())) == n:
         temp = data.truth["temperature_k"].astype(float)
     if temp is not None:
+        temp = temp[at]
         temp = _fill(temp, ~np.isfinite(temp)) if np.isfinite(temp).any() else None
     logged_text = data.metadata.get("leveler", {}).get("config", "")
     if model is not None:
@@ -124,7 +135,7 @@ def load_measured(path: str | Path, model: str | Path | None = None,
     c = logged.controller
     return Measured(path, Signals(t, dt, temp), u, y, cfg, source, text, nbad,
                     (c.kp_v_per_m, c.ki_v_per_m_s, c.kd_v_s_per_m),
-                    c if logged_text else None, s["state"] == "engaged", data.stop_reason,
+                    c if logged_text else None, s["state"][at] == "engaged", data.stop_reason,
                     data.live)
 
 
