@@ -173,48 +173,47 @@ def _make_client(cfg: ModbusChannelConfig) -> ModbusTcpClient | ModbusSerialClie
                               timeout=cfg.timeout_s, retries=cfg.retries)
 
 
-def _input(link: ModbusLink, cfg: ModbusSensorConfig | ModbusThermometerConfig
-           ) -> tuple[int, Status]:
-    """An analog input's counts, railed at either end of its range."""
-    counts = cfg.decode(link.read(cfg.register_kind, cfg.register, cfg.words))
-    railed = counts <= cfg.counts_min or counts >= cfg.counts_max
-    return counts, Status.RAILED if railed else Status.OK
+class _AnalogInput:
+    """One analog input channel on its own link: what the sensor and the thermometer share."""
+
+    def __init__(self, cfg: ModbusSensorConfig | ModbusThermometerConfig) -> None:
+        self._link = ModbusLink(cfg)
+
+    def connect(self) -> None:
+        self._link.connect()
+
+    def close(self) -> None:
+        self._link.close()
+
+    def _counts(self, cfg: ModbusSensorConfig | ModbusThermometerConfig) -> tuple[int, Status]:
+        """The channel's counts, railed at either end of its range."""
+        counts = cfg.decode(self._link.read(cfg.register_kind, cfg.register, cfg.words))
+        railed = counts <= cfg.counts_min or counts >= cfg.counts_max
+        return counts, Status.RAILED if railed else Status.OK
 
 
-class ModbusSensor:
+class ModbusSensor(_AnalogInput):
     """Displacement from an analog input module (ADAM-6017 style)."""
 
     def __init__(self, cfg: ModbusSensorConfig) -> None:
+        super().__init__(cfg)
         self.cfg = cfg
-        self._link = ModbusLink(cfg)
-
-    def connect(self) -> None:
-        self._link.connect()
 
     def read(self, t_s: float) -> Reading:
-        counts, status = _input(self._link, self.cfg)
+        counts, status = self._counts(self.cfg)
         return Reading(t_s, counts, self.cfg.counts_to_m(counts), status)
 
-    def close(self) -> None:
-        self._link.close()
 
-
-class ModbusThermometer:
+class ModbusThermometer(_AnalogInput):
     """The table's temperature from an analog input (a PT100 transmitter's output)."""
 
     def __init__(self, cfg: ModbusThermometerConfig) -> None:
+        super().__init__(cfg)
         self.cfg = cfg
-        self._link = ModbusLink(cfg)
-
-    def connect(self) -> None:
-        self._link.connect()
 
     def read_temperature(self, t_s: float) -> TemperatureReading:
-        counts, status = _input(self._link, self.cfg)
+        counts, status = self._counts(self.cfg)
         return TemperatureReading(t_s, self.cfg.counts_to_k(counts), status)
-
-    def close(self) -> None:
-        self._link.close()
 
 
 class ModbusActuator:
