@@ -101,7 +101,7 @@ def test_asd_compares_two_logs_and_plots(logs: tuple[Path, Path], tmp_path: Path
     assert proc.returncode == 0, proc.stderr
     assert "ASD of tilt_rad [rad/sqrt(Hz)]" in proc.stdout  # the unit from the log's schema
     header = next(ln for ln in proc.stdout.splitlines() if ln.strip().startswith("frequency"))
-    assert header.split()[1:3] == ["open.mcap", "closed.mcap"]  # names, not whole paths
+    assert header.split()[1:] == ["open.mcap", "closed.mcap", "2nd/1st"]  # names, not paths
     row = next(ln for ln in proc.stdout.splitlines() if ln.strip().startswith("0.001 Hz"))
     ratio = float(row.split()[-1].rstrip("x"))
     assert ratio < 0.5  # closed loop well below open loop at 1 mHz

@@ -40,7 +40,8 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     p.add_argument("--channel", default="sensor_m",
                    help="field to analyse (default: %(default)s)")
     p.add_argument("--compare", default=None,
-                   help="a second log (e.g. open loop) drawn and tabulated against the first")
+                   help="a second log (e.g. open loop) drawn and tabulated against the first; "
+                   "the table's last column is the second's ASD over the first's")
     p.add_argument("--plot", default=None, help="save the ASD plot as PNG")
     p.add_argument("--json", action="store_true", help="print the spectrum as JSON")
     p.set_defaults(func=run)
@@ -198,7 +199,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         header = f"{'frequency':>12}" + "".join(f"  {label[-28:]:>28}" for label, _ in curves)
         if len(curves) == 2:
-            header += f"  {'ratio':>8}"
+            header += f"  {'2nd/1st':>8}"
         print(f"ASD of {args.channel} [{per_rthz}]")
         print(header)
         for f in TABLE_FREQS_HZ:
