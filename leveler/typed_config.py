@@ -123,7 +123,10 @@ def load_toml(path: str | Path) -> dict[str, Any]:
         with path.open("rb") as fh:
             return tomllib.load(fh)
     except FileNotFoundError:
-        raise ConfigError(f"{path}: no such config file") from None
+        # a relative default (`leveler sim`'s config/sim.toml) read outside a checkout: say
+        # where it was looked for and how to name another
+        where = "" if path.is_absolute() else f" in {Path.cwd()}; name one with --config FILE"
+        raise ConfigError(f"{path}: no such config file{where}") from None
     except OSError as exc:  # a directory, no permission: refuse to start, do not guess
         raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
     except UnicodeDecodeError as exc:  # tomllib decodes before parsing: not a TOMLDecodeError

@@ -120,9 +120,15 @@ def test_bad_values_name_file_and_key(tmp_path: Path, text: str, needle: str) ->
     assert needle in str(err.value)
 
 
-def test_missing_file_is_a_clear_error(tmp_path: Path) -> None:
-    with pytest.raises(ConfigError, match="no such config file"):
+def test_missing_file_is_a_clear_error(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    with pytest.raises(ConfigError, match=r"no such config file$"):
         load_config(tmp_path / "absent.toml")
+    # a relative default read outside a checkout says where it looked and what to do
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ConfigError) as err:
+        load_config("config/sim.toml")
+    assert str(err.value) == (f"config/sim.toml: no such config file in {tmp_path}; "
+                              "name one with --config FILE")
 
 
 @pytest.mark.parametrize(
