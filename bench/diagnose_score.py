@@ -451,9 +451,11 @@ def main(argv: list[str] | None = None) -> int:
     hours = args.hours if args.hours is not None else (3.0 if args.quick else 6.0)
 
     cases = build_cases(families, severities, seeds, nulls)
+    # seeds from the untouched list are labelled so however they were asked for
+    untouched = args.untouched or all(s in UNTOUCHED_SEEDS for s in seeds)
     header = (f"leveler diagnose against the independent generator: {len(cases)} logs of "
               f"{hours:g} h ({len(cases) - nulls} effect, {nulls} null), seeds "
-              f"{','.join(map(str, seeds))}{' (UNTOUCHED)' if args.untouched else ' (tuning)'}"
+              f"{','.join(map(str, seeds))}{' (UNTOUCHED)' if untouched else ' (tuning)'}"
               f", platform inertia {'off' if args.no_platform_inertia else 'on'}")
     print(header, file=sys.stderr)
 
