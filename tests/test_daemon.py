@@ -35,7 +35,9 @@ def test_daemon_levels_prints_status_and_stops_cleanly(tmp_path: Path, sig: sign
     assert len(data.truth["tilt_rad"]) == len(seq)
     kinds = [e["kind"] for e in data.events]
     assert kinds[0] == "start" and kinds[-1] == "stop"
-    assert data.events[0]["detail"]["heap_frozen"] > 50_000  # no full collection scans them
+    # the start-up heap (numpy, mcap, the config: ~33k objects) frozen, so no full
+    # collection scans it
+    assert data.events[0]["detail"]["heap_frozen"] > 20_000
     assert data.events[-1]["reason"] == sig.name
     assert "[controller]" in data.metadata["leveler"]["config"]
     assert set(data.samples["state"][5:]) == {"engaged"}

@@ -286,3 +286,42 @@ def test_a_mode_rung_by_its_own_noise_adds_band_noise_of_its_rms() -> None:
     assert f[np.argmax(p)] == pytest.approx(2.0, rel=0.05)
     band = np.abs(f - 2.0) < 2.0 / 20.0
     assert np.sum(p[band]) > 0.5 * np.sum(p)  # most of its power within its half-power band
+
+
+@pytest.mark.parametrize(("lag_s", "dt_s", "n"), [
+    (600.0, 0.1, 20_000),  # the plate's thermal lag over several chunks of four lags
+    (1e5, 0.001, 5_000),  # a lag far beyond the block: one chunk
+    (0.02, 0.1, 300),  # a lag under a sample: a sample a chunk
+    (2.0, 0.1, 1),
+])
+def test_the_thermal_lag_is_scipys_lfilter_with_its_state_carried(lag_s: float, dt_s: float,
+                                                                   n: int) -> None:
+    """The simulated plant's first-order lag (numpy alone, so a simulated stand does not
+    import scipy.signal) is lfilter([1 - a], [1, -a]) to 1e-12 of the signal, split into
+    two blocks with the state carried between them."""
+    from scipy.signal import lfilter
+
+    from leveler.sim.disturbance import first_order_lag
+
+    a = math.exp(-dt_s / lag_s)
+    x = 293.0 + 0.01 * np.cumsum(np.random.default_rng(1).standard_normal(n))
+    want, z_want = lfilter([1 - a], [1, -a], x, zi=[a * x[0]])
+    half = n // 2
+    y1, z = first_order_lag(x[:half], a, a * x[0], lag_s / dt_s)
+    y2, z = first_order_lag(x[half:], a, z, lag_s / dt_s)
+    assert np.max(np.abs(np.r_[y1, y2] - want)) < 1e-12 * 293.0
+    assert z == pytest.approx(z_want[0], rel=1e-13)
+
+
+@pytest.mark.parametrize(("f_hz", "q"), [(1.5, 12.0), (3.3, 30.0), (0.8, 5.0)])
+def test_a_modes_noise_energy_is_its_impulse_responses(f_hz: float, q: float) -> None:
+    """Its output variance per unit white input, by Parseval, is the sum of its squared
+    impulse response (lfilter's, long past its ringing)."""
+    from scipy.signal import lfilter
+
+    from leveler.sim.effects import ExtraResonance
+    from leveler.sim.plant import impulse_energy
+
+    b, a = ExtraResonance(frequency_hz=f_hz, q=q, gain=0.1, noise_rms_m=1e-9).discrete(0.1)
+    h = lfilter(b, a, np.r_[1.0, np.zeros(200_000)])
+    assert impulse_energy(b, a) == pytest.approx(float(np.sum(h**2)), rel=1e-12)
