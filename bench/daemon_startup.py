@@ -128,7 +128,7 @@ def run(quick: bool) -> list[dict[str, Any]]:
             note="VmRSS 2 s after READY, normal scheduling (the service's mlockall makes "
             "every mapping resident)"),
         row(SECTION, "time to READY, simulated stand", sim_s, "s", baseline=floor,
-            ratio=sim_s / base_s, note="config/sim.toml: the simulation brings scipy"),
+            ratio=sim_s / base_s, note="config/sim.toml: the simulated plant is numpy alone"),
         row(SECTION, "daemon RSS, simulated stand", sim_mib, "MiB", baseline=mem_floor,
             ratio=sim_mib / base_mib),
     ]
