@@ -48,7 +48,7 @@ class Disturbances:
         self._start = 0
         self._walk_k = 0.0
         self._drift_m = 0.0
-        self._lag_state: np.ndarray | None = None
+        self._lag_state: float | None = None
         self._tilt_effects = [(fx, {}) for fx in params.effects.of("tilt")]
 
     def next_block(self) -> Block:
