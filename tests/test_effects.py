@@ -30,6 +30,7 @@ from leveler.sim.effects import (
     SensorGainError,
     Signals,
     TemperatureCoupling,
+    play,
 )
 from leveler.typed_config import ConfigError, build
 
@@ -229,3 +230,18 @@ def test_two_plays_report_the_narrower_first_and_stroke_the_same() -> None:
     np.testing.assert_allclose(c.apply(u, sig), fx.apply(u, sig), atol=1e-12)
     assert c.free == ("width_v", "fraction", "width2_v", "weight2")
     assert "20% of the stroke lags by up to 0.3 V and 10% by up to 1.2 V" in c.describe()
+
+
+@pytest.mark.parametrize("n", [1, 2, 63, 64, 65, 1000, 4097])
+def test_the_blocked_play_is_the_sample_by_sample_play_to_the_bit(n: int) -> None:
+    """`play` composes its clamps in blocks, not one sample after another; min and max
+    only, so it must equal the definition exactly, at every length (one sample, a part
+    block, whole blocks, many)."""
+    rng = np.random.default_rng(n)
+    u = np.cumsum(rng.normal(0.0, 0.3, n)) + 75.0
+    for width in (1e-3, 0.4, 2.0, 1e3):
+        y, out = u[0], np.empty(n)
+        for i, v in enumerate(u):
+            y = min(max(y, v - width), v + width)
+            out[i] = y
+        assert np.array_equal(play(u, width), out), width

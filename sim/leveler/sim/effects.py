@@ -518,23 +518,47 @@ class ActuatorDelay(Effect):
         return ev.best_linear([cls(delay_s=d) for d in (dt, 3 * dt, 10 * dt)], None, keep=1)
 
 
+#: samples per block of `play`'s scan
+PLAY_BLOCK = 64
+
+
 def play(u: np.ndarray, width_v: float) -> np.ndarray:
     """Backlash (play) operator of half-width `width_v`: the output follows the input only
     once it has moved `width_v` the other way; starts centred on the first input.
 
-    Each sample clamps the output into [u - w, u + w]; clamps compose into clamps, so the
-    whole sequence is a prefix scan (log2 n vectorized passes instead of a Python loop
-    over every sample: replay of a day costs ~0.1 s instead of ~0.4 s).
+    Each sample clamps the output into [u - w, u + w], and clamps compose into clamps
+    (min and max only, so in any order the result is the same to the bit). The log is cut
+    into blocks of PLAY_BLOCK samples: each block's clamps are composed into one (a pass
+    per position in the block, vectorized across blocks), a prefix scan over the blocks
+    gives the output entering each, and a last pass per position runs it through. About 3
+    clamps a sample, where a prefix scan over the samples takes 2 log2 n (40 for a day):
+    a hysteresis fit replays the day hundreds of times, and this was a third of a
+    modulated day's diagnosis (0.06 s a play, now 0.01 s).
     """
-    lo, hi = u - width_v, u + width_v
+    n = len(u)
+    m = -(-n // PLAY_BLOCK)
+    padded = np.empty(m * PLAY_BLOCK)
+    padded[:n] = u
+    padded[n:] = u[-1]  # after the last sample: changes nothing before it
+    at = padded.reshape(m, PLAY_BLOCK).T.copy()  # at[j]: sample j of every block
+    lo, hi = at - width_v, at + width_v
+    block_lo, block_hi = lo[0].copy(), hi[0].copy()
+    for j in range(1, PLAY_BLOCK):
+        np.minimum(np.maximum(block_lo, lo[j], out=block_lo), hi[j], out=block_lo)
+        np.minimum(np.maximum(block_hi, lo[j], out=block_hi), hi[j], out=block_hi)
     d = 1
-    while d < len(u):
-        # (lo, hi)[i] covers samples (i - d, i]; compose it after the block ending at i - d.
-        new_lo = np.clip(lo[:-d], lo[d:], hi[d:])
-        new_hi = np.clip(hi[:-d], lo[d:], hi[d:])
-        lo[d:], hi[d:] = new_lo, new_hi
+    while d < m:  # block b's clamp after the ones of blocks b - d + 1 .. b - 1 before it
+        new_lo = np.minimum(np.maximum(block_lo[:-d], block_lo[d:]), block_hi[d:])
+        new_hi = np.minimum(np.maximum(block_hi[:-d], block_lo[d:]), block_hi[d:])
+        block_lo[d:], block_hi[d:] = new_lo, new_hi
         d *= 2
-    return np.clip(u[0], lo, hi)
+    y = np.empty(m)  # the output entering each block
+    y[0] = u[0]
+    y[1:] = np.minimum(np.maximum(u[0], block_lo[:-1]), block_hi[:-1])
+    for j in range(PLAY_BLOCK):
+        np.minimum(np.maximum(y, lo[j], out=y), hi[j], out=y)
+        at[j] = y
+    return at.T.reshape(-1)[:n]
 
 
 def turns(played: np.ndarray) -> int:
