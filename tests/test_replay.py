@@ -218,3 +218,27 @@ def test_a_log_with_ticks_a_late_loop_skipped_replays(tmp_path: Path) -> None:
     i = 701  # the skipped tick's slot: the voltage of the cycle before it, held
     assert meas.u_v[i] == meas.u_v[i - 1] and np.isfinite(meas.y_m).all()
     assert main(["replay", str(log), "--json"]) == 0
+
+
+def test_the_start_states_fit_as_a_direct_solve_does_and_keep_nanometre_shapes_on_a_day() -> None:
+    """The start states' least squares by scaled normal equations equals a direct solve
+    where that is well posed (3 h), and on a day keeps shapes of nanometres beside the
+    offset: numpy's lstsq cuts singular values under eps x rows of the largest, and a
+    column of ones over 864,000 samples sits 1e12 above them."""
+    from leveler.analysis.predict import _offset_and_shapes
+
+    rng = np.random.default_rng(3)
+    for n in (108_000, 864_000):
+        t = np.arange(n) * 0.1
+        ring = np.exp(-t / 40.0)
+        shapes = [1e-9 * np.exp(-t / 1800.0), 1e-9 * ring * np.cos(4.4 * t),
+                  1e-9 * ring * np.sin(4.4 * t)]
+        truth = 0.7 * shapes[0] - 2.0 * shapes[1] + 1.5 * shapes[2]
+        r = 3e-9 + truth + 1e-10 * rng.standard_normal(n)
+        fit = _offset_and_shapes(r, shapes)
+        np.testing.assert_allclose(fit - fit.mean(), truth - truth.mean(),
+                                   atol=1e-2 * np.ptp(truth))
+        if n == 108_000:
+            a = np.column_stack([np.ones(n), *shapes])
+            coef = np.linalg.lstsq(a, r, rcond=None)[0]
+            np.testing.assert_allclose(fit, a[:, 1:] @ coef[1:], atol=1e-6 * np.ptp(truth))
