@@ -44,6 +44,7 @@ from leveler.loop.pid import PID
 from leveler.settings import Config, load_config
 from leveler.sim.disturbance import Disturbances
 from leveler.sim.params import PlantParams
+from leveler.sim.pendulum import ramp_terms
 from leveler.sim.plant import Plant
 from leveler.virtual import run_virtual
 
@@ -100,6 +101,7 @@ def python_control_loop(cfg: Config) -> ct.InterconnectedSystem:
     tilt_per_v = pz.gain_m_per_v / params.platform.support_spacing_m
     max_dv = pz.slew_v_per_s * dt
     h = dt / 4  # PendulumModel's RK4 substeps
+    ramp_k = [(float(a), float(b)) for a, b in ramp_terms(pend, dt)[::-1]]
     top = 2**se.adc_bits - 1
 
     def acc(th: float, om: float, phi: float) -> float:
@@ -109,8 +111,8 @@ def python_control_loop(cfg: Config) -> ct.InterconnectedSystem:
         th, om, v, phi_before = x
         target = min(max(u[0], pz.min_v), pz.max_v)
         dv = min(max(target - v, -max_dv), max_dv)
-        v = v + dv
-        phi = tilt_per_v * (v - dv * abs(dv) / (2 * max_dv) - pz.ref_v) + u[1]  # slew_lag_v
+        v, before = v + dv, v
+        phi = tilt_per_v * (v - pz.ref_v) + u[1]
         th, om = th - (phi - phi_before), om + c / j * (phi - phi_before)  # J phi''
         for _ in range(4):
             k1t, k1o = om, acc(th, om, phi)
@@ -119,7 +121,13 @@ def python_control_loop(cfg: Config) -> ct.InterconnectedSystem:
             k4t, k4o = om + h * k3o, acc(th + h * k3t, om + h * k3o, phi)
             th += h / 6.0 * (k1t + 2 * k2t + 2 * k3t + k4t)
             om += h / 6.0 * (k1o + 2 * k2o + 2 * k3o + k4o)
-        return [th, om, v, phi]
+        ramp_s = abs(v - before) / pz.slew_v_per_s  # the piezo's ramp (ramp_terms)
+        g_theta = g_omega = 0.0
+        for k_theta, k_omega in ramp_k:
+            g_theta = (g_theta + k_theta) * ramp_s
+            g_omega = (g_omega + k_omega) * ramp_s
+        dphi = tilt_per_v * (v - before)
+        return [th + g_theta * dphi, om + g_omega * dphi, v, phi]
 
     def plant_output(t: float, x: np.ndarray, u: np.ndarray, p: dict) -> list[float]:
         sensed = arm * x[0] + u[2]

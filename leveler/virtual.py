@@ -270,7 +270,7 @@ class _Kernel:
     def _constants(self) -> np.ndarray:
         vs, loop, plant = self.vs, self.vs.loop, self.sim.plant
         pend, pid, pol = plant.pendulum, loop.pid, loop.policy
-        k = np.zeros(kn.N_CONST)
+        k = np.zeros(kn.N_CONST + 2 * len(plant._ramp_k))
         for i, v in ((kn.K_TILT_PER_V, plant._tilt_per_v), (kn.K_V_REF, plant._v_ref),
                      (kn.K_V_MIN, plant._v_min), (kn.K_V_MAX, plant._v_max),
                      (kn.K_MAX_DV, plant._max_dv), (kn.K_ARM, plant._arm),
@@ -289,6 +289,8 @@ class _Kernel:
                      (kn.K_STUCK_AFTER, pol.stuck_after_samples),
                      (kn.K_MAX_STEP_M, pol.max_step_m), (kn.K_SPIKE_MAX, pol.spike_reject_max)):
             k[i] = v
+        k[kn.K_SLEW_V_PER_S] = plant._slew_v_per_s
+        k[kn.K_RAMP_TERMS:] = np.ravel(plant._ramp_k)
         return k
 
     def _export(self) -> None:

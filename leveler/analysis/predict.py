@@ -25,7 +25,13 @@ from leveler.loop.pid import PID, ControllerConfig
 from leveler.settings import Config, load_config
 from leveler.sim.effects import Effect, EffectsParams, Signals
 from leveler.sim.params import PlantParams
-from leveler.sim.pendulum import discrete_matrices, linear_matrices
+from leveler.sim.pendulum import (
+    discrete_matrices,
+    free_step,
+    linear_matrices,
+    ramp_gain,
+    ramp_terms,
+)
 from leveler.sim.plant import slew_lag_v
 from leveler.typed_config import ConfigError, build
 
@@ -269,6 +275,10 @@ class Predictor:
         self._ref = pz.ref_v
         self._v, self._lag_v = slewed(meas.u_v, pz.slew_v_per_s * meas.dt_s)
         self._b, self._a = pendulum_filter(params, meas.dt_s)
+        # each step's slew: how long the piezo ramps, and what that adds per unit dphi
+        tau_s = np.abs(np.diff(self._v, prepend=self._v[:1])) / pz.slew_v_per_s
+        self._ramp = ramp_gain(ramp_terms(pe, meas.dt_s), np.minimum(tau_s, meas.dt_s))
+        self._e = free_step(pe, meas.dt_s)
         self._amp = pe.amplification
         self.nominal_tilt = self._nominal_tilt()
         self._transient = self.thermal_transient()
@@ -309,6 +319,18 @@ class Predictor:
         """Sensor displacement [m] for platform tilt phi, starting settled at phi[0]."""
         return self.arm_m * (self._amp * phi[0] + lfilter(self._b, self._a, phi - phi[0]))
 
+    def slew(self, phi_end: np.ndarray) -> np.ndarray:
+        """Sensor displacement [m] the piezo's slewing adds to `pend` of its tilt at each
+        step's end (`leveler.sim.pendulum.ramp_terms`): what each step's change injects
+        into [theta, omega] at the step's end, run through the held pendulum."""
+        dphi = np.diff(phi_end, prepend=phi_end[:1])
+        g = self._ramp * dphi[:, None]
+        (e11, e12), (e21, e22) = self._e
+        v = np.zeros(len(dphi))
+        v[1:] += g[:-1, 0]
+        v[2:] += e12 * g[:-2, 1] - e22 * g[:-2, 0]
+        return self.arm_m * lfilter([1.0], [1.0, -(e11 + e22), e11 * e22 - e12 * e21], v)
+
     def thermal_transient(self) -> np.ndarray | None:
         """Shape of the thermal lag's unknown initial state (a nuisance the fit removes)."""
         th = self.params.thermal
@@ -336,11 +358,12 @@ class Predictor:
         sig, u = self.meas.sig, self._v
         for fx in effects.of("actuator"):
             u = fx.apply(u, sig)
-        phi_u = self._kv * (u - self._lag_v - self._ref)
-        phi = phi_u + self.nominal_tilt
+        phi_end = self._kv * (u - self._ref)  # where the piezo is at each step's end
+        phi_u = phi_end - self._kv * self._lag_v  # its mean over the step
+        phi = phi_end + self.nominal_tilt
         for fx in effects.of("tilt"):
             phi = phi + fx.tilt(sig)  # type: ignore[attr-defined]
-        x = self.pend(phi)
+        x = self.pend(phi) + self.slew(phi_end)
         for fx in effects.of("response"):
             x = x + fx.response(phi_u, self.static_m_per_rad, sig)  # type: ignore[attr-defined]
         shapes = self.start_shapes(effects)

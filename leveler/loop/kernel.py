@@ -33,8 +33,11 @@ N_COUNT = 7
 (K_TILT_PER_V, K_V_REF, K_V_MIN, K_V_MAX, K_MAX_DV, K_ARM, K_GAIN, K_OFFSET, K_ADC_MIN, K_LSB,
  K_TOP, K_LINEAR, K_A11, K_A12, K_A21, K_A22, K_B1, K_B2, K_C_PER_J, K_J, K_C, K_K, K_MGL,
  K_SUBSTEPS, K_PLANT_DT, K_OFFSET_TILT, K_KP, K_KI, K_KD, K_LO, K_HI, K_SLEW, K_TAU, K_RAMP,
- K_TARGET, K_TT, K_DT, K_PERIOD, K_STUCK_AFTER, K_MAX_STEP_M, K_SPIKE_MAX) = range(41)
-N_CONST = 41
+ K_TARGET, K_TT, K_DT, K_PERIOD, K_STUCK_AFTER, K_MAX_STEP_M, K_SPIKE_MAX,
+ K_SLEW_V_PER_S) = range(42)
+# then the slew's terms to the end, Plant._ramp_k's pairs in its order (highest power first)
+K_RAMP_TERMS = 42
+N_CONST = K_RAMP_TERMS  # without them
 # Rows of the float output, one column per cycle.
 (T_S, SENSOR_M, SETPOINT_M, P_V, I_V, D_V, COMMAND_V, APPLIED_V, TILT_RAD, THERMAL_RAD,
  COOLER_RAD, PIEZO_RAD, PENDULUM_RAD, TEMPERATURE_K, DRIFT_M) = range(15)
@@ -88,9 +91,10 @@ def cycles(s: np.ndarray, c: np.ndarray, k: np.ndarray, thermal: np.ndarray,
         dv = v - before
         lag = dv * abs(dv) / (2.0 * max_dv)
         s[LAG_V] = lag
+        dphi_u = tilt_per_v * (v - s[V_EFFECTIVE])
         s[V_EFFECTIVE] = v
         phi = (tilt_per_v * (v - v_ref) + thermal[i] + cooler[i] + effect[i]
-               + offset_tilt) - tilt_per_v * lag
+               + offset_tilt)
         # -- PendulumModel.step
         dphi = phi - s[PHI]
         s[PHI] = phi
@@ -118,6 +122,15 @@ def cycles(s: np.ndarray, c: np.ndarray, k: np.ndarray, thermal: np.ndarray,
                 th += h / 6.0 * (k1t + 2 * k2t + 2 * k3t + k4t)
                 om += h / 6.0 * (k1o + 2 * k2o + 2 * k3o + k4o)
             s[THETA], s[OMEGA] = th, om
+        # -- Plant.step: the ramp the piezo took
+        ramp_s = abs(dv) / k[K_SLEW_V_PER_S]
+        g_theta = 0.0
+        g_omega = 0.0
+        for m in range((len(k) - K_RAMP_TERMS) // 2):
+            g_theta = (g_theta + k[K_RAMP_TERMS + 2 * m]) * ramp_s
+            g_omega = (g_omega + k[K_RAMP_TERMS + 2 * m + 1]) * ramp_s
+        s[THETA] += g_theta * dphi_u
+        s[OMEGA] += g_omega * dphi_u
         c[N] += 1
         i += 1
         c[BLOCK_I] = i

@@ -1,7 +1,8 @@
 """The simulated stand: platform, piezo, inverted pendulum, capacitive sensor and ADC.
 
-State advances in fixed steps of dt; over each step the platform feels the piezo voltage's
-mean (the amplifier slews to a new voltage at its rate, `slew_lag_v`). The
+State advances in fixed steps of dt; over each step the amplifier slews the piezo to its
+new voltage at its rate, and the pendulum follows that ramp exactly (`ramp_terms`); a
+resonance feels the voltage's mean over the step (`slew_lag_v`). The
 measurement at step n uses the pendulum state at t = n dt; the step from n to n+1 uses the
 platform tilt at t = n dt. Driver, replay and discrepancy tools all use this one model.
 """
@@ -16,17 +17,17 @@ from leveler.records import Truth
 from leveler.sim.disturbance import Block, Disturbances
 from leveler.sim.effects import ExtraResonance
 from leveler.sim.params import PlantParams
-from leveler.sim.pendulum import PendulumModel
+from leveler.sim.pendulum import PendulumModel, ramp_terms
 
 
 def slew_lag_v(dv: float | np.ndarray, max_dv: float) -> float | np.ndarray:
     """How far below the new voltage the piezo's mean over a step sits, for a change dv
     within one step (|dv| <= max_dv = slew rate x dt).
 
-    The amplifier slews continuously: a change of dv takes |dv| / slew of the step, and
-    the pendulum feels the ramp's mean, not the new voltage from the step's start. A 6.8 V
+    The amplifier slews continuously: a change of dv takes |dv| / slew of the step. A 6.8 V
     step of a square modulation at 100 V/s and 10 Hz sits 2.3 V short over its first
-    step: held as a jump, it reads as a 27 ms actuator delay."""
+    step: held as a jump, it reads as a 27 ms actuator delay. A resonance is driven by
+    this mean; the pendulum follows the ramp itself (`ramp_terms`)."""
     return dv * abs(dv) / (2.0 * max_dv)
 
 
@@ -60,6 +61,10 @@ class Plant:
         self._block: Block = self._dist.next_block()
         self._i = 0
         self.pendulum = PendulumModel(params.pendulum, dt_s)
+        # per unit dphi, [theta, omega] the slew adds at a step's end: Horner in its time
+        self._ramp_k = tuple((float(a), float(b))
+                             for a, b in ramp_terms(params.pendulum, dt_s)[::-1])
+        self._slew_v_per_s = pz.slew_v_per_s
         self.pendulum.settle(params.pendulum, self.tilt_rad())
         fx = params.effects
         self._actuator_fx = [e.stepper(dt_s) for e in fx.of("actuator")]
@@ -102,12 +107,21 @@ class Plant:
             t_s = self.n * self.dt_s
             for f in self._actuator_fx:
                 v = f(v, t_s)
+        dphi = self._tilt_per_v * (v - self.v_effective)
         self.v_effective = v
         if self._resonances:
             phi_u = self._tilt_per_v * (v - self._lag_v - self._v_ref)
             self._extra_m = sum(r.step(phi_u) for r in self._resonances)
-        # Over the step the pendulum feels the slewing piezo's mean, not where it ends.
-        self.pendulum.step(self.tilt_rad() - self._tilt_per_v * self._lag_v)
+        pend = self.pendulum
+        pend.step(self.tilt_rad())
+        # The piezo got there by a ramp of |dv| / slew from the step's start, not a jump.
+        tau = abs(self.v_applied - before) / self._slew_v_per_s
+        g_theta = g_omega = 0.0
+        for k_theta, k_omega in self._ramp_k:
+            g_theta = (g_theta + k_theta) * tau
+            g_omega = (g_omega + k_omega) * tau
+        pend.theta += g_theta * dphi
+        pend.omega += g_omega * dphi
         self.n += 1
         self._i += 1
         if self._i >= len(self._block.noise_m):
