@@ -109,13 +109,16 @@ def free_step(p: PendulumParams, dt_s: float) -> np.ndarray:
     return _zoh_exp(p, dt_s)[:2, :2].copy()
 
 
-def ramp_gain(terms: np.ndarray, tau_s: float | np.ndarray) -> np.ndarray:
-    """sum_m terms[m - 1] tau^m by Horner: shape (..., 2) for tau of shape (...)."""
-    tau = np.asarray(tau_s, dtype=float)[..., None]
-    acc = np.zeros((*tau.shape[:-1], 2))
-    for row in terms[::-1]:
-        acc = (acc + row) * tau
-    return acc
+def ramp_gain(terms: np.ndarray, tau_s: np.ndarray) -> np.ndarray:
+    """sum_m terms[m - 1] tau^m by Horner, in place on each column: shape (n, 2) for n
+    taus (a replay of a day builds one per recalibration step)."""
+    tau = np.asarray(tau_s, dtype=float)
+    out = np.zeros((2, len(tau)))
+    for acc, column in zip(out, terms.T, strict=True):
+        for k in column[::-1]:
+            acc += k
+            acc *= tau
+    return out.T
 
 
 def _zoh(p: PendulumParams, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
