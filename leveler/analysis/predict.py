@@ -277,7 +277,9 @@ class Predictor:
         self._b, self._a = pendulum_filter(params, meas.dt_s)
         # each step's slew: how long the piezo ramps, and what that adds per unit dphi
         tau_s = np.abs(np.diff(self._v, prepend=self._v[:1])) / pz.slew_v_per_s
-        self._ramp = ramp_gain(ramp_terms(pe, meas.dt_s), np.minimum(tau_s, meas.dt_s))
+        ramp = ramp_gain(ramp_terms(pe, meas.dt_s), np.minimum(tau_s, meas.dt_s))
+        self._ramp_theta, self._ramp_omega = ramp[:, 0].copy(), ramp[:, 1].copy()
+        # e^(A dt), whose characteristic polynomial is pendulum_filter's denominator
         self._e = free_step(pe, meas.dt_s)
         self._amp = pe.amplification
         self.nominal_tilt = self._nominal_tilt()
@@ -319,17 +321,19 @@ class Predictor:
         """Sensor displacement [m] for platform tilt phi, starting settled at phi[0]."""
         return self.arm_m * (self._amp * phi[0] + lfilter(self._b, self._a, phi - phi[0]))
 
-    def slew(self, phi_end: np.ndarray) -> np.ndarray:
-        """Sensor displacement [m] the piezo's slewing adds to `pend` of its tilt at each
-        step's end (`leveler.sim.pendulum.ramp_terms`): what each step's change injects
-        into [theta, omega] at the step's end, run through the held pendulum."""
+    def pend_slewed(self, phi: np.ndarray, phi_end: np.ndarray) -> np.ndarray:
+        """`pend` of `phi` plus what the piezo's slewing adds, its tilt at each step's end
+        `phi_end` (`leveler.sim.pendulum.ramp_terms`): each step's change injects into
+        [theta, omega] at the step's end, and the held pendulum carries it on. Both run
+        through the pendulum's one denominator in one filter (every replay does this)."""
         dphi = np.diff(phi_end, prepend=phi_end[:1])
-        g = self._ramp * dphi[:, None]
-        (e11, e12), (e21, e22) = self._e
-        v = np.zeros(len(dphi))
-        v[1:] += g[:-1, 0]
-        v[2:] += e12 * g[:-2, 1] - e22 * g[:-2, 0]
-        return self.arm_m * lfilter([1.0], [1.0, -(e11 + e22), e11 * e22 - e12 * e21], v)
+        g_theta, g_omega = self._ramp_theta * dphi, self._ramp_omega * dphi
+        (_, e12), (_, e22) = self._e
+        d = phi - phi[0]
+        w = np.convolve(d, self._b)[: len(d)]
+        w[1:] += g_theta[:-1]
+        w[2:] += e12 * g_omega[:-2] - e22 * g_theta[:-2]
+        return self.arm_m * (self._amp * phi[0] + lfilter([1.0], self._a, w))
 
     def thermal_transient(self) -> np.ndarray | None:
         """Shape of the thermal lag's unknown initial state (a nuisance the fit removes)."""
@@ -363,7 +367,7 @@ class Predictor:
         phi = phi_end + self.nominal_tilt
         for fx in effects.of("tilt"):
             phi = phi + fx.tilt(sig)  # type: ignore[attr-defined]
-        x = self.pend(phi) + self.slew(phi_end)
+        x = self.pend_slewed(phi, phi_end)
         for fx in effects.of("response"):
             x = x + fx.response(phi_u, self.static_m_per_rad, sig)  # type: ignore[attr-defined]
         shapes = self.start_shapes(effects)
