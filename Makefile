@@ -19,13 +19,15 @@ $(STAMP): pyproject.toml
 run: $(STAMP)
 	$(BIN)/leveler run --config $(CONFIG)
 
-# On every core (pytest-xdist), a test file to a worker so its module fixtures are made once:
-# 6.3 min on 2 cores where one process took 9-10. One BLAS thread per worker: the workers
-# already fill the cores, and BLAS threads on top of them fight for the same ones.
+# Two pytest-xdist workers a core, a test file to a worker so its module fixtures are made
+# once: many tests wait on a daemon, a socket or a pty, and a second worker fills the core
+# meanwhile (2 cores, 2026-12-02: 355 s with 4 workers, 480 s with 2, 692 s of CPU in all).
+# One BLAS thread per worker: the workers already fill the cores.
+TEST_WORKERS ?= $(shell echo $$(( 2 * $$(nproc) )))
 test: $(STAMP) device-deps
 	$(BIN)/ruff check .
 	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 \
-	  $(BIN)/python -m pytest -q -m "not slow and not systemd" -n auto --dist loadfile
+	  $(BIN)/python -m pytest -q -m "not slow and not systemd" -n $(TEST_WORKERS) --dist loadfile
 
 # Every `$ ...` transcript in README.md and docs/*.md rerun and rewritten (docs/examples.py,
 # about a minute); make test fails when one drifts beyond its stated tolerance.
