@@ -34,6 +34,8 @@ LINE_SPREAD = np.array([1.0, 2.0, 3.0, 2.0, 1.0]) / 9.0
 LINE_LEVEL_BINS = 31
 #: the fewest cycles in a block that make a line
 LINE_MIN_CYCLES = 8
+#: the lowest bin of the longest block a periodic disturbance's fundamental is guessed at
+GUESS_MIN_BINS = 4
 #: a bump's mean z must stand this many standard errors above 1 (searched over some
 #: ten thousand overlapping bands of a 3 h log: well beyond chance)
 BUMP_SIGMA = 8.0
@@ -61,9 +63,13 @@ class Evidence:
         self._z = self.spec.zscores(self.residual)
 
     def fmin_hz(self) -> float:
-        """Lowest frequency with at least eight cycles in the span: fewer do not make a
-        periodic disturbance, and the lowest bins are where unmodeled drift lives."""
-        return 8.0 / (self.spec.n * self.sig.dt_s)
+        """Lowest frequency a periodic disturbance is looked for at: LINE_MIN_CYCLES
+        cycles in the whole log (a waveform is fitted in phase over all of it), and
+        GUESS_MIN_BINS bins into the longest block, whose spectrum the lines are read
+        from (the lowest bins are where unmodeled drift lives)."""
+        span_s = self.sig.t_s[-1] - self.sig.t_s[0] if len(self.sig.t_s) > 1 else 0.0
+        block_s = self.spec.n * self.sig.dt_s
+        return max(LINE_MIN_CYCLES / span_s if span_s > 0 else 0.0, GUESS_MIN_BINS / block_s)
 
     def bin_hz(self) -> float:
         """The frequency grid's step (of the longest block, where lines are read)."""
@@ -71,8 +77,20 @@ class Evidence:
 
     def peaks(self, fmin_hz: float, fmax_hz: float, most: int = 3) -> list[float]:
         """Frequencies of the strongest lines in [fmin, fmax], harmonics of a stronger line
-        left out (a sawtooth is one disturbance, not ten)."""
-        f, z = self.spec.f_hz, self._z
+        left out (a sawtooth is one disturbance, not ten): up to `most` from each block's
+        spectrum, the longest block's first. A slow disturbance that the closed loop
+        holds down shows only in the open loop's shorter block: a 748 s sawtooth stood
+        at z = 296 there and at nothing in the closed loop's, and was never fitted."""
+        found: list[float] = []
+        for part in sorted(self.w.parts, key=lambda p: -p.n):
+            z = self._z if part is self.spec else part.zscores(self.residual)
+            found += self._lines(part.f_hz, z, fmin_hz, fmax_hz, most, found)
+        return sorted(set(found))
+
+    def _lines(self, f: np.ndarray, z: np.ndarray, fmin_hz: float, fmax_hz: float,
+               most: int, known: list[float]) -> list[float]:
+        """Up to `most` lines of one block's z-scores (`f`, `z`) that are neither a line
+        in `known` nor a harmonic of one."""
         df = f[1] - f[0]
         threshold = math.log(len(z)) + _LINE_Z
         idx = np.flatnonzero((f >= fmin_hz) & (f <= fmax_hz) & (z > threshold))
@@ -80,18 +98,18 @@ class Evidence:
 
         def harmonic(fx: float) -> bool:  # of a line already found (refined to ~df/10)
             return any(abs(fx - h * g) <= df * (2.0 + 0.1 * h)
-                       for g in found for h in range(1, int(fx / g) + 2))
+                       for g in known + found for h in range(1, int(fx / g) + 2))
 
         for k in idx[np.argsort(z[idx])[::-1]]:
             if harmonic(float(f[k])):
                 continue
-            fk = self._refine(self._fundamental(int(k), threshold, fmin_hz))
+            fk = _refine(f, z, _fundamental(f, z, int(k), threshold, fmin_hz))
             if harmonic(fk):
                 continue
             found.append(fk)
             if len(found) >= most:
                 break
-        return sorted(set(found))
+        return found
 
     def bumps(self, fmin_hz: float, fmax_hz: float, most: int = 2) -> list[float]:
         """Centres of bands where the residual's power stands above the noise spectrum on
@@ -116,28 +134,6 @@ class Evidence:
             if len(out) >= most:
                 break
         return out
-
-    def _fundamental(self, k: int, threshold: float, fmin_hz: float) -> int:
-        """The lowest significant subharmonic of bin k: a sawtooth's second or third
-        harmonic can stand out more than its fundamental."""
-        z = self._z
-        for div in (5, 4, 3, 2):
-            j = round(k / div)
-            if j < 4 or self.spec.f_hz[j] < fmin_hz:
-                continue
-            lo = j - 1
-            peak = lo + int(np.argmax(z[lo:j + 2]))
-            around = np.median(z[max(peak - 12, 1):peak + 13])
-            # A line, not the red noise a subharmonic of a line may sit in.
-            if z[peak] > threshold and z[peak] > 30 * around:
-                return peak
-        return k
-
-    def _refine(self, k: int) -> float:
-        """Line frequency between bins: the centroid of the power around the peak."""
-        lo, hi = max(k - 2, 1), min(k + 3, len(self._z))
-        p = self._z[lo:hi]
-        return float(np.sum(self.spec.f_hz[lo:hi] * p) / np.sum(p))
 
     def spectra(self) -> Spectra:
         """The blocks' periodograms of the residual with their noise spectra (for a mode
@@ -306,6 +302,30 @@ class Evidence:
     def natural_frequency_hz(self) -> float:
         """The model pendulum's: a line near it means its frequency or Q is off."""
         return self.pred.params.pendulum.natural_frequency_hz
+
+
+def _fundamental(f: np.ndarray, z: np.ndarray, k: int, threshold: float,
+                 fmin_hz: float) -> int:
+    """The lowest significant subharmonic of bin k of the z-scores `z` (on `f`): a
+    sawtooth's second or third harmonic can stand out more than its fundamental."""
+    for div in (5, 4, 3, 2):
+        j = round(k / div)
+        if j < 4 or f[j] < fmin_hz:
+            continue
+        lo = j - 1
+        peak = lo + int(np.argmax(z[lo:j + 2]))
+        around = np.median(z[max(peak - 12, 1):peak + 13])
+        # A line, not the red noise a subharmonic of a line may sit in.
+        if z[peak] > threshold and z[peak] > 30 * around:
+            return peak
+    return k
+
+
+def _refine(f: np.ndarray, z: np.ndarray, k: int) -> float:
+    """Line frequency between bins: the centroid of the power around the peak."""
+    lo, hi = max(k - 2, 1), min(k + 3, len(z))
+    p = z[lo:hi]
+    return float(np.sum(f[lo:hi] * p) / np.sum(p))
 
 
 def _moving(exc: np.ndarray) -> slice:
