@@ -22,7 +22,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -129,6 +129,8 @@ class Recalibration:
     sigma_post: dict[str, float]
     deviance: float  # twice the log-likelihood gain over the nominal model
     held: tuple[str, ...] = ()  # knobs a first fit put beyond PULL_LIMIT, now at nominal
+    # posterior correlation of each pair of fitted knobs: which a disputed one may have moved
+    correlation: dict[tuple[str, str], float] = field(default_factory=dict)
 
     def pull(self, name: str) -> float:
         k = next(k for k in self.knobs if k.name == name)
@@ -137,6 +139,15 @@ class Recalibration:
     @property
     def disputed(self) -> list[str]:
         return [k.name for k in self.knobs if abs(self.pull(k.name)) > PULL_LIMIT]
+
+    def releasing(self, knob: Knob, offset: float, sigma_post: float) -> Recalibration:
+        """This fit with a held knob put back at `offset` (from nominal, where holding
+        left it) and counted among the fitted ones again."""
+        return dataclasses.replace(
+            self, params=knob.apply(self.params, offset), knobs=[*self.knobs, knob],
+            offset={**self.offset, knob.name: offset},
+            sigma_post={**self.sigma_post, knob.name: sigma_post},
+            held=tuple(n for n in self.held if n != knob.name))
 
     def as_dict(self) -> dict[str, dict[str, float]]:
         return {k.name: {"offset_rel": self.offset[k.name], "sigma_rel": k.sigma,
@@ -248,13 +259,19 @@ def recalibrate(meas: Measured, params: PlantParams, w: Whitener,
                         max_nfev=30 * (len(lo) + 1))
     r0 = residuals(z0)
     deviance = float(r0 @ r0 - res.fun @ res.fun)
+    corr: dict[tuple[str, str], float] = {}
     try:
         cov = np.linalg.inv(res.jac.T @ res.jac)
-        post = np.sqrt(np.abs(np.diag(cov)))[:nk] * sigma
+        sd = np.sqrt(np.abs(np.diag(cov)))
+        post = sd[:nk] * sigma
+        for i, a in enumerate(ks):
+            for j, b in enumerate(ks):
+                if i != j and sd[i] > 0 and sd[j] > 0:
+                    corr[a.name, b.name] = float(cov[i, j] / (sd[i] * sd[j]))
     except np.linalg.LinAlgError:
         post = np.full(nk, math.inf)
     x = res.x[:nk] * sigma
     return Recalibration(with_unreplayable(apply(effect_at(res.x[nk:]), ks, x), full), ks,
                          {k.name: float(v) for k, v in zip(ks, x, strict=True)},
                          {k.name: float(v) for k, v in zip(ks, post, strict=True)}, deviance,
-                         omit)
+                         omit, corr)
