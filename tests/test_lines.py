@@ -110,3 +110,18 @@ def test_a_line_in_the_shorter_block_alone_is_guessed(quiet: Measured) -> None:
     ev = Evidence(quiet, Predictor(quiet.config.plant, quiet), bare,
                   Nuisance(pred, None, quiet))
     assert not any(abs(f * 700 - 1) < 0.1 for f in ev.peaks(ev.fmin_hz(), 0.1))
+
+
+def test_no_periodic_guess_on_the_modulation(quiet: Measured) -> None:
+    """A line on a harmonic of the modulation is the actuator's response to it, and a fit
+    started there stays there and is rejected (`PeriodicDisturbance.locked`): no guess is
+    made on one (four fits, a fifth of a square-modulated null day's diagnosis). Here the
+    readings lack the response to a 287 s square the model is told of."""
+    t = quiet.t_s - quiet.t_s[0]
+    square = np.sign(np.sin(2 * np.pi * t / 287.0))
+    ev, _, _ = _held_out(dataclasses.replace(quiet, u_v=quiet.u_v + 1.0 * square))
+    lines = ev.peaks(ev.fmin_hz(), 0.1)
+    on_it = [f for f in lines if abs(f * 287.0 - 1) < 0.02]  # the response is a line
+    assert on_it, lines
+    assert "the modulation's" in PeriodicDisturbance(period_s=1 / on_it[0]).locked(ev)
+    assert [g.period_s for g in PeriodicDisturbance.guesses(ev)] == []

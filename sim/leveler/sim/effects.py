@@ -267,6 +267,11 @@ class PeriodicDisturbance(Effect):
         square's response. One on a harmonic of the modelled cooler is that cooler's
         waveform, not the model's sawtooth: a 299 s one followed a strong hysteresis,
         its evidence the lines of a cooler of another form."""
+        return self.locked(ev) or Effect.degenerate(self, ev)
+
+    def locked(self, ev: Evidence) -> str:
+        """Why its period is a harmonic of the modulation's or the modelled cooler's
+        (see `degenerate`); "" if it is neither."""
         f = 1.0 / self.period_s
         span = ev.modulation_span_s()
         for f0, what, why, resolution in (
@@ -280,7 +285,7 @@ class PeriodicDisturbance(Effect):
             if (1 <= n <= MODULATION_HARMONICS
                     and abs(f - n * f0) <= max(LOCKED_REL * f, resolution)):
                 return f"its period {self.period_s:.4g} s is {what} ({1 / f0:.4g} s) / {n}: {why}"
-        return Effect.degenerate(self, ev)
+        return ""
 
     def held_out_deviance(self, ev: Evidence) -> float | None:
         """Its lines on the held-out part whatever their phase (`line_deviance`): a cycle
@@ -306,10 +311,15 @@ class PeriodicDisturbance(Effect):
 
     @classmethod
     def guesses(cls, ev: Evidence) -> list[Effect]:
+        """A sine on each line of the residual, but those on a harmonic of the modulation
+        or the cooler (`locked`): their fits stay there and are rejected, and the four fits
+        (the sine, two sawtooths, a triangle) were a fifth of a square-modulated null day's
+        diagnosis."""
         out: list[Effect] = []
         for f_hz in ev.peaks(ev.fmin_hz(), 0.1):
-            out += ev.best_phase(cls(shape="sine", period_s=1.0 / f_hz), "phase_s",
-                                 1.0 / f_hz, "peak_to_peak_rad")
+            sine = cls(shape="sine", period_s=1.0 / f_hz)
+            if not sine.locked(ev):
+                out += ev.best_phase(sine, "phase_s", 1.0 / f_hz, "peak_to_peak_rad")
         return out
 
     def variants(self) -> list[Effect]:
