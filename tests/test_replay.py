@@ -242,3 +242,31 @@ def test_the_start_states_fit_as_a_direct_solve_does_and_keep_nanometre_shapes_o
             a = np.column_stack([np.ones(n), *shapes])
             coef = np.linalg.lstsq(a, r, rcond=None)[0]
             np.testing.assert_allclose(fit, a[:, 1:] @ coef[1:], atol=1e-6 * np.ptp(truth))
+
+
+def test_a_predictor_set_up_from_memory_is_the_one_built_afresh(night: Path) -> None:
+    """`Predictor` keeps the set-up its knobs do not touch (`predict._memo`); what it
+    hands out for one set of numbers must be what a fresh build gives, whatever was
+    built in between, and must change with the numbers it depends on."""
+    import dataclasses
+
+    from leveler.analysis import predict
+
+    meas = load_measured(night)
+    plant = meas.config.plant
+
+    def built(lag_s: float, slew_v_per_s: float) -> Predictor:
+        return Predictor(dataclasses.replace(
+            plant, thermal=dataclasses.replace(plant.thermal, lag_s=lag_s),
+            piezo=dataclasses.replace(plant.piezo, slew_v_per_s=slew_v_per_s)), meas)
+
+    lag, slew = plant.thermal.lag_s, plant.piezo.slew_v_per_s
+    first = built(lag, slew).base.y_m
+    lagged = built(3 * lag, slew).base.y_m
+    slow = built(lag, slew / 1e4).base.y_m  # a slew that holds back the PID's steps
+    again = built(lag, slew).base.y_m
+    predict._MEMO.clear()
+    np.testing.assert_array_equal(again, first)
+    np.testing.assert_array_equal(built(lag, slew).base.y_m, first)
+    for other in (lagged, slow):
+        assert np.max(np.abs(other - first)) > 1e-10

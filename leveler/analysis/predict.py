@@ -15,6 +15,7 @@ import tomllib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, TypeVar
 
 import numpy as np
 from scipy.signal import lfilter, ss2tf
@@ -24,7 +25,7 @@ from leveler.log.reader import read_log
 from leveler.loop.pid import PID, ControllerConfig
 from leveler.settings import Config, load_config
 from leveler.sim.effects import Effect, EffectsParams, Signals
-from leveler.sim.params import PlantParams
+from leveler.sim.params import CoolerParams, PlantParams
 from leveler.sim.pendulum import (
     discrete_matrices,
     free_step,
@@ -36,6 +37,7 @@ from leveler.sim.plant import slew_lag_v
 from leveler.typed_config import ConfigError, build
 
 _MAX_BAD_FRACTION = 0.05
+T = TypeVar("T")
 
 
 @dataclass
@@ -241,6 +243,55 @@ def slewed(u_v: np.ndarray, max_dv: float) -> tuple[np.ndarray, np.ndarray]:
     return v, slew_lag_v(np.diff(v, prepend=v[:1]), max_dv)
 
 
+#: how many set-ups `_memo` keeps (each holds a few series as long as the log)
+_MEMO_SIZE = 8
+_MEMO: dict[tuple[Any, ...], tuple[tuple[np.ndarray, ...], Any]] = {}
+
+
+def _memo(arrays: tuple[np.ndarray, ...], values: tuple[Any, ...], make: Callable[[], T]) -> T:
+    """`make()`, kept for the same `arrays` (the very objects, held so their ids stay
+    theirs) and `values`, and handed out read-only: a recalibration builds a `Predictor`
+    per knob it turns, and most of one's set-up (the slewing, the cooler's waveform, the
+    lagged temperature) depends on none of them; rebuilt, it was a fifth of a
+    modulated null day's diagnosis."""
+    key = (tuple(id(a) for a in arrays), values)
+    hit = _MEMO.get(key)
+    if hit is not None and all(a is b for a, b in zip(hit[0], arrays, strict=True)):
+        return hit[1]
+    out = make()
+    for x in out if isinstance(out, tuple) else (out,):
+        if not any(x is a for a in arrays):  # `slewed` may hand back the log's own
+            x.flags.writeable = False
+    if len(_MEMO) >= _MEMO_SIZE:
+        del _MEMO[next(iter(_MEMO))]
+    _MEMO[key] = (arrays, out)
+    return out
+
+
+def _slewing(params: PlantParams, meas: Measured
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`slewed`'s two series, and what each step's slew adds per unit dphi to the
+    pendulum's [theta, omega] at its end (`ramp_gain`: how long the piezo ramps)."""
+    pz, dt = params.piezo, meas.dt_s
+    v, lag_v = slewed(meas.u_v, pz.slew_v_per_s * dt)
+    tau_s = np.abs(np.diff(v, prepend=v[:1])) / pz.slew_v_per_s
+    ramp = ramp_gain(ramp_terms(params.pendulum, dt), np.minimum(tau_s, dt))
+    return v, lag_v, ramp[:, 0].copy(), ramp[:, 1].copy()
+
+
+def _cooler_shape(co: CoolerParams, sig: Signals) -> np.ndarray:
+    """The cooler's waveform, -0.5 to 0.5 (its peak to peak scales it)."""
+    frac = np.mod((sig.t_s + co.phase_s) / co.period_s, 1.0)
+    rise = 1.0 - co.fall_fraction
+    return np.where(frac < rise, frac / rise, (1.0 - frac) / co.fall_fraction) - 0.5
+
+
+def _lagged(temp_k: np.ndarray, lag_s: float, dt_s: float) -> np.ndarray:
+    """The temperature through the table's first-order thermal lag, settled at the start."""
+    a = math.exp(-dt_s / lag_s)
+    return lfilter([1 - a], [1, -a], temp_k, zi=np.array([a * temp_k[0]]))[0]
+
+
 def pendulum_filter(params: PlantParams, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
     """theta/phi of the discretized linear pendulum (`PendulumModel`'s steps) as lfilter
     coefficients."""
@@ -273,12 +324,9 @@ class Predictor:
         self.static_m_per_rad = pe.sensor_arm_m * pe.amplification
         self._kv = pz.gain_m_per_v / params.platform.support_spacing_m
         self._ref = pz.ref_v
-        self._v, self._lag_v = slewed(meas.u_v, pz.slew_v_per_s * meas.dt_s)
+        self._v, self._lag_v, self._ramp_theta, self._ramp_omega = _memo(
+            (meas.u_v,), (pe, pz.slew_v_per_s, meas.dt_s), lambda: _slewing(params, meas))
         self._b, self._a = pendulum_filter(params, meas.dt_s)
-        # each step's slew: how long the piezo ramps, and what that adds per unit dphi
-        tau_s = np.abs(np.diff(self._v, prepend=self._v[:1])) / pz.slew_v_per_s
-        ramp = ramp_gain(ramp_terms(pe, meas.dt_s), np.minimum(tau_s, meas.dt_s))
-        self._ramp_theta, self._ramp_omega = ramp[:, 0].copy(), ramp[:, 1].copy()
         # e^(A dt), whose characteristic polynomial is pendulum_filter's denominator
         self._e = free_step(pe, meas.dt_s)
         self._amp = pe.amplification
@@ -299,17 +347,15 @@ class Predictor:
         """Disturbance tilt the nominal model can predict: thermal (if the temperature was
         logged) and the cooler; the table's offset is unknown and left to the fit."""
         p, sig = self.params, self.meas.sig
-        co = p.cooler
-        frac = np.mod((sig.t_s + co.phase_s) / co.period_s, 1.0)
-        rise = 1.0 - co.fall_fraction
-        shape = np.where(frac < rise, frac / rise, (1.0 - frac) / co.fall_fraction)
-        tilt = co.peak_to_peak_rad * (shape - 0.5)
-        th = p.thermal
-        if sig.temperature_k is not None and th.tilt_per_kelvin_rad_per_k != 0:
-            temp = sig.temperature_k
+        co, th = p.cooler, p.thermal
+        tilt = co.peak_to_peak_rad * _memo(
+            (sig.t_s,), (co.phase_s, co.period_s, co.fall_fraction),
+            lambda: _cooler_shape(co, sig))
+        temp = sig.temperature_k
+        if temp is not None and th.tilt_per_kelvin_rad_per_k != 0:
             if th.lag_s > 0:
-                a = math.exp(-sig.dt_s / th.lag_s)
-                temp = lfilter([1 - a], [1, -a], temp, zi=np.array([a * temp[0]]))[0]
+                temp = _memo((temp,), (th.lag_s, sig.dt_s),
+                             lambda: _lagged(temp, th.lag_s, sig.dt_s))
             tilt = tilt + th.tilt_per_kelvin_rad_per_k * (temp - th.mean_k)
         return tilt
 
