@@ -244,6 +244,7 @@ def test_cli_json_contract_report_and_fitted_model(tmp_path: Path,
     # the noise spectrum on the held-out part goes to about 1 in every band it had lifted
     # (measured: 1-10 mHz 2.2e5 -> 1.07).
     assert out["unexplained"] is None and out["ambiguous"] is None
+    assert out["unseen"] == {}  # the temperature logged: every family looked for
     lifted = {b: v for b, v in out["gap_normalised"].items() if v and v["before"] > 10}
     assert "1-10 mHz" in lifted and lifted["1-10 mHz"]["before"] > 1e4
     assert all(0.7 < v["after"] < 1.5 for v in lifted.values()), lifted

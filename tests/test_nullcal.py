@@ -95,6 +95,8 @@ def test_cli_calibrates_caches_and_reuses(modulated_log: Path, tmp_path: Path,
     got = capsys.readouterr()
     assert json.loads(got.out)["thresholds"] == first
     assert "null calibration" not in got.err
+    # its dither is a square: a hysteresis would hardly show, and it says so
+    assert "square modulation" in json.loads(got.out)["unseen"]["actuator_hysteresis"]
     cands = json.loads(got.out)["candidates"]
     scored = [c for c in cands if c["penalty"] > 0]
     assert scored and all(c["threshold"] == max(c["penalty"], first["by_family"][c["name"]])

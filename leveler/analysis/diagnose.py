@@ -46,7 +46,7 @@ from scipy.signal import freqz
 
 from leveler.analysis.bandgate import BandChange, band_changes, bin_power, worse_band
 from leveler.analysis.bump import Bump, Spectra, mode_psd
-from leveler.analysis.evidence import Evidence
+from leveler.analysis.evidence import Evidence, modulation_steps
 from leveler.analysis.leftover import Leftover, leftover
 from leveler.analysis.nuisance import (
     Nuisance,
@@ -69,7 +69,13 @@ from leveler.analysis.recalibrate import Recalibration, apply, recalibrate, repl
 from leveler.analysis.told import red_ceiling
 from leveler.analysis.whittle import ENBW_BINS, Blocks, Whitener, deviance, hann_psd
 from leveler.analysis.workers import one_blas_thread
-from leveler.sim.effects import EFFECTS, Effect, EffectsParams, ExtraResonance
+from leveler.sim.effects import (
+    EFFECTS,
+    ActuatorHysteresis,
+    Effect,
+    EffectsParams,
+    ExtraResonance,
+)
 from leveler.sim.params import PlantParams
 
 #: An accepted effect moves the reading by this share of the sensor's white noise, rms
@@ -152,6 +158,8 @@ class Diagnosis:
     leftover: Leftover | None = None  # lines no family explained
     # per band: residual power over the noise spectrum, nominal and final model (held out)
     gap_normalised: dict[str, dict[str, float] | None] = field(default_factory=dict)
+    # per family this log cannot show (or hardly): why (`unseen`)
+    unseen: dict[str, str] = field(default_factory=dict)
 
 
 def warmup_samples(meas: Measured, pred: Predictor) -> int:
@@ -431,8 +439,7 @@ def diagnose(meas: Measured, max_effects: int = 4,
     found: list[Found] = []
     tried: list[Candidate] = []
     ambiguous: list[Candidate] = []
-    temperature = meas.sig.temperature_k is not None
-    excited = temperature or act_excited
+    skipped = not_looked_for(meas, act_excited)
     noise = sensor_noise_m(pred.params, meas.dt_s)
     while len(found) < max_effects:
         w_train = make_blocks(meas, pred, train)
@@ -448,9 +455,7 @@ def diagnose(meas: Measured, max_effects: int = 4,
         r = _Round(meas, pred, w_train, w_test, n_train, n_test, white0_train, white0_test,
                    cost0_train, cost0_test, ev, ev_test, len(found), noise, thresholds, gains)
         families = [cls for cls in EFFECTS.values()
-                    if getattr(pred.effects, cls.name) is None
-                    and (temperature or not cls.needs_temperature)
-                    and (excited or not cls.needs_excitation)]
+                    if getattr(pred.effects, cls.name) is None and cls.name not in skipped]
         passed: list[tuple[Fit, Candidate]] = []
         name = f"round {len(found) + 1}: fitting each family of effects"
         total = len(families)
@@ -514,7 +519,35 @@ def diagnose(meas: Measured, max_effects: int = 4,
                      time.perf_counter() - start_wall,
                      dataclasses.replace(pred.params, effects=EffectsParams()), recal,
                      ambiguous, rest,
-                     normalised_gap(w_te, meas.y_m - nominal.base.y_m, meas.y_m - pred.base.y_m))
+                     normalised_gap(w_te, meas.y_m - nominal.base.y_m, meas.y_m - pred.base.y_m),
+                     unseen(meas, act_excited, [f.effect.name for f in found]))
+
+
+def not_looked_for(meas: Measured, act_excited: bool) -> dict[str, str]:
+    """The families this log cannot show at all, and why."""
+    temperature = meas.sig.temperature_k is not None
+    out = {}
+    for cls in EFFECTS.values():
+        if cls.needs_temperature and not temperature:
+            out[cls.name] = "not looked for: no temperature was logged"
+        elif cls.needs_excitation and not (temperature or act_excited):
+            out[cls.name] = ("not looked for: nothing moved the actuator but the loop, "
+                             "and no temperature was logged (`leveler modulate` moves it)")
+    return out
+
+
+def unseen(meas: Measured, act_excited: bool, found: list[str]) -> dict[str, str]:
+    """Per family this log cannot show, or hardly, why: a physicist reading "no missing
+    effect" should know what was never looked for, and what to record to look for it."""
+    out = not_looked_for(meas, act_excited)
+    if (act_excited and ActuatorHysteresis.name not in found + list(out)
+            and modulation_steps(meas)):
+        out[ActuatorHysteresis.name] = (
+            "hardly testable here: a square modulation holds the piezo between its edges, "
+            "where a hysteresis is only an offset, a gain the recalibration takes; only the "
+            "closed loop's reversals can show its loop, and a modulation that sweeps (a "
+            "triangle) would")
+    return out
 
 
 def _confirm(r: _Round, f: Fit, check: Fit, nuisance: Nuisance, parts: list[slice],

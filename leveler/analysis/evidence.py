@@ -43,6 +43,9 @@ BUMP_SIGMA = 8.0
 #: line is tried, to see that the power is on it
 LINE_WINDOW = 4
 LINE_OFFSET_BINS = 3
+#: a modulation whose largest moves, in this share of its samples, make most of its
+#: travel steps the actuator (a square's edges), where a sweep's are spread (a triangle's)
+STEP_SHARE = 0.05
 
 
 class Evidence:
@@ -333,6 +336,23 @@ def _moving(exc: np.ndarray) -> slice:
     step = np.abs(np.diff(exc))
     moved = np.flatnonzero(step > 1e-3 * step.max()) if len(step) and step.max() > 0 else []
     return slice(int(moved[0]), int(moved[-1]) + 2) if len(moved) else slice(0, 0)
+
+
+def modulation_steps(meas: Measured) -> bool:
+    """Whether the log's modulation (`modulation_v`) steps the actuator and holds it
+    between its edges (a square: `leveler modulate`'s), rather than sweeping it (a
+    triangle, a sine: its travel is spread over its samples, however slow). Held, a piezo's hysteresis is an offset
+    per edge, a gain the recalibration takes: only the closed loop's reversals can show
+    a loop then (an independent Bouc-Wen stand's, named in 1 of 9 square-modulated logs
+    and 9 of 9 triangle-modulated ones)."""
+    exc = modulation_v(meas)
+    if exc is None:
+        return False
+    seg = exc[_moving(exc)]
+    if modulation_hz(seg, meas.dt_s) is None:
+        return False
+    step = np.sort(np.abs(np.diff(seg)))[::-1]
+    return bool(np.sum(step[:max(1, int(STEP_SHARE * len(step)))]) > 0.5 * np.sum(step))
 
 
 def modulation_hz(x: np.ndarray | None, dt_s: float) -> float | None:

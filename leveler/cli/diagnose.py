@@ -150,6 +150,7 @@ def result_json(d: Diagnosis, meas: Measured, model_out: str | None,
                        "deviance_held_out": c.deviance_test, "score": c.score}
                       for c in d.ambiguous] or None,
         "unexplained": None if d.leftover is None else d.leftover.as_dict(),
+        "unseen": d.unseen,
         "thresholds": thresholds_json(cal),
         "candidates": [{"name": c.name, "round": c.round, "params": c.params,
                         "uncertainty": c.sigma, "deviance_train": c.deviance_train,
@@ -201,6 +202,11 @@ def summary(d: Diagnosis, model_out: str | None, cal: NullCalibration | None = N
         lines.append(thresholds_line(cal))
     if d.leftover is not None:
         lines.append(d.leftover.describe())
+    if d.unseen:
+        from leveler.sim.effects import EFFECTS
+
+        lines.append("what this log cannot show:")
+        lines += [f"  {EFFECTS[name].title}: {why}" for name, why in d.unseen.items()]
     if d.effects:
         band = headline_band(d)
         if band:
