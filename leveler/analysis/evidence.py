@@ -341,10 +341,10 @@ def _moving(exc: np.ndarray) -> slice:
 def modulation_steps(meas: Measured) -> bool:
     """Whether the log's modulation (`modulation_v`) steps the actuator and holds it
     between its edges (a square: `leveler modulate`'s), rather than sweeping it (a
-    triangle, a sine: its travel is spread over its samples, however slow). Held, a piezo's hysteresis is an offset
-    per edge, a gain the recalibration takes: only the closed loop's reversals can show
-    a loop then (an independent Bouc-Wen stand's, named in 1 of 9 square-modulated logs
-    and 9 of 9 triangle-modulated ones)."""
+    triangle, a sine: its travel is spread over its samples, however slow). Held, a
+    piezo's hysteresis is an offset per edge, a gain the recalibration takes: only the
+    closed loop's reversals can show a loop then (an independent Bouc-Wen stand's, named
+    in 1 of 9 square-modulated logs and 9 of 9 triangle-modulated ones)."""
     exc = modulation_v(meas)
     if exc is None:
         return False
