@@ -270,3 +270,26 @@ def test_a_predictor_set_up_from_memory_is_the_one_built_afresh(night: Path) -> 
     np.testing.assert_array_equal(built(lag, slew).base.y_m, first)
     for other in (lagged, slow):
         assert np.max(np.abs(other - first)) > 1e-10
+
+
+def test_the_set_up_kept_longest_unused_is_dropped_first() -> None:
+    """`predict._memo` keeps the last `_MEMO_SIZE` set-ups used, not the last made: a
+    recalibration asks for the cooler's waveform every step, and for the pendulum's
+    slewing terms anew at each resonance it tries."""
+    from leveler.analysis import predict
+
+    predict._MEMO.clear()
+    log, made = np.zeros(3), []
+
+    def get(i: int) -> np.ndarray:
+        return predict._memo((log,), (i,), lambda: made.append(i) or np.full(3, float(i)))
+
+    for i in range(predict._MEMO_SIZE):
+        get(i)
+    assert get(0)[0] == 0.0  # kept: now the most recently used
+    get(99)  # drops 1, the least recently used
+    get(0)
+    get(1)
+    assert made == [*range(predict._MEMO_SIZE), 99, 1]
+    assert not get(99).flags.writeable  # handed out read-only
+    predict._MEMO.clear()

@@ -243,7 +243,8 @@ def slewed(u_v: np.ndarray, max_dv: float) -> tuple[np.ndarray, np.ndarray]:
     return v, slew_lag_v(np.diff(v, prepend=v[:1]), max_dv)
 
 
-#: how many set-ups `_memo` keeps (each holds a few series as long as the log)
+#: how many set-ups `_memo` keeps, the least recently used dropped first (each holds a
+#: few series as long as the log: a day's slewing is 28 MB)
 _MEMO_SIZE = 8
 _MEMO: dict[tuple[Any, ...], tuple[tuple[np.ndarray, ...], Any]] = {}
 
@@ -255,8 +256,9 @@ def _memo(arrays: tuple[np.ndarray, ...], values: tuple[Any, ...], make: Callabl
     lagged temperature) depends on none of them; rebuilt, it was a fifth of a
     modulated null day's diagnosis."""
     key = (tuple(id(a) for a in arrays), values)
-    hit = _MEMO.get(key)
+    hit = _MEMO.pop(key, None)
     if hit is not None and all(a is b for a, b in zip(hit[0], arrays, strict=True)):
+        _MEMO[key] = hit  # the most recently used goes last, the least first out
         return hit[1]
     out = make()
     for x in out if isinstance(out, tuple) else (out,):
