@@ -377,6 +377,8 @@ def modulation_hz(x: np.ndarray | None, dt_s: float) -> float | None:
 _LATTICE_COUNTS = np.geomspace(3.0, 300.0, 464)
 #: Rayleigh statistic a step's coherence must beat: chance odds 1e-4 over the scan.
 _LATTICE_Z = math.log(len(_LATTICE_COUNTS) / 1e-4)
+#: and this share of the strongest step's (its halves and thirds come close to it)
+LATTICE_SHARE = 0.1
 
 
 def _changes(spans: list[np.ndarray], lsb_m: float, predicted: list[np.ndarray] | None
@@ -418,15 +420,24 @@ def find_lattice(spans: list[np.ndarray], lsb_m: float,
         return None
     steps = lsb_m * _LATTICE_COUNTS
     coherence = np.full(len(steps), -1.0)
+    z = np.zeros(len(steps))
     for i, q in enumerate(steps):
         sel = _unpredicted(d, dp, q)
+        # Not a `break` at the first step with too few: a closed loop hunting across a
+        # coarse converter's levels makes changes the model predicts (it replays the
+        # commands), and only a larger step's quarter lets them through (a strong 23.6 nm
+        # converter: none at 4.6 nm, 18,757 at 23.6 nm; quantization was never fitted).
         if len(sel) < 50:
-            break
+            continue
         # The real part: changes of one step at a trial step of two line up in antiphase.
         c = float(np.mean(np.cos(2 * np.pi * sel / q)))
         if c > 0.3 and len(sel) * c * c > _LATTICE_Z:
-            coherence[i] = c
-    lined_up = np.flatnonzero(coherence > 0)
+            coherence[i], z[i] = c, len(sel) * c * c
+    # The largest step that lines up, but among those that line up nearly as strongly as
+    # the strongest: large changes line up on a multiple of the step as well, and a
+    # square-modulated strong converter's 23.6 nm steps (z about 16,000) lost to 145 nm,
+    # six of them, where 1,100 changes of four steps and more lined up (z 159).
+    lined_up = np.flatnonzero((coherence > 0) & (z >= LATTICE_SHARE * z.max()))
     if not len(lined_up):
         return None
     # The coherence peak is broad (a trial step 10 % long still lines changes of one step
