@@ -121,7 +121,10 @@ def test_size_rotation(tmp_path: Path) -> None:
     for _ in range(3):
         before = log.path
         assert before is not None
-        while before.stat().st_size < 20_000:  # the writer closes a chunk every 5 ms
+        # The writer closes a chunk every 5 ms. Wait for the size the log checks, not the
+        # file's: the writer thread writes a chunk before it counts it, and a sample handed
+        # in between saw the old count, asked for nothing, and the test waited in vain.
+        while log._writer is None or log._writer.bytes_written < 20_000:
             for _ in range(20):
                 log.sample(make_sample(seq, rng), T0_NS + seq)
                 seq += 1
