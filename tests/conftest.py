@@ -13,9 +13,13 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import pytest
 from hypothesis import settings
+
+if TYPE_CHECKING:
+    from leveler.analysis.predict import Measured
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -156,3 +160,18 @@ def as_user(uid: int, fn: Callable[[], object], gid: int | None = None) -> str:
         out = fh.read()
     os.waitpid(pid, 0)
     return out
+
+
+@pytest.fixture(scope="session")
+def quiet(tmp_path_factory: pytest.TempPathFactory) -> Measured:
+    """Two hours of the simulated stand with nothing missing (seed 12), loaded for replay:
+    shared read-only; a test changes it through `dataclasses.replace`."""
+    from leveler.analysis.predict import load_measured
+    from leveler.analysis.synthetic import make_measured
+    from leveler.settings import load_config
+
+    cfg, text = load_config(REPO / "config" / "sim.toml")
+    log = tmp_path_factory.mktemp("quiet") / "quiet.mcap"
+    make_measured(log, cfg, text, None, duration_s=2 * 3600, seed=12)
+    return load_measured(log)
+

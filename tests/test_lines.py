@@ -5,7 +5,6 @@ lines."""
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,22 +12,11 @@ import pytest
 from leveler.analysis.diagnose import make_blocks, split, warmup_samples
 from leveler.analysis.evidence import Evidence
 from leveler.analysis.nuisance import Nuisance
-from leveler.analysis.predict import Measured, Predictor, load_measured
-from leveler.analysis.synthetic import make_measured
+from leveler.analysis.predict import Measured, Predictor
 from leveler.analysis.whittle import deviance
-from leveler.settings import load_config
 from leveler.sim.effects import PeriodicDisturbance
 
-REPO = Path(__file__).resolve().parents[1]
 SAW = PeriodicDisturbance(shape="sawtooth", period_s=240.0, peak_to_peak_rad=1e-8, phase_s=0.0)
-
-
-@pytest.fixture(scope="module")
-def quiet(tmp_path_factory: pytest.TempPathFactory) -> Measured:
-    cfg, text = load_config(REPO / "config" / "sim.toml")
-    log = tmp_path_factory.mktemp("lines") / "quiet.mcap"
-    make_measured(log, cfg, text, None, duration_s=2 * 3600, seed=12)
-    return load_measured(log)
 
 
 def _held_out(meas: Measured, added: PeriodicDisturbance | None = None

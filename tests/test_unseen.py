@@ -5,28 +5,15 @@ stand for them."""
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import numpy as np
-import pytest
 
 from leveler.analysis.diagnose import unseen
 from leveler.analysis.evidence import modulation_steps
-from leveler.analysis.predict import Measured, load_measured
-from leveler.analysis.synthetic import make_measured
-from leveler.settings import load_config
+from leveler.analysis.predict import Measured
 from leveler.sim.effects import Signals
 
-REPO = Path(__file__).resolve().parents[1]
 HYST = "actuator_hysteresis"
-
-
-@pytest.fixture(scope="module")
-def quiet(tmp_path_factory: pytest.TempPathFactory) -> Measured:
-    cfg, text = load_config(REPO / "config" / "sim.toml")
-    log = tmp_path_factory.mktemp("unseen") / "quiet.mcap"
-    make_measured(log, cfg, text, None, duration_s=2 * 3600, seed=12)
-    return load_measured(log)
 
 
 def _modulated(meas: Measured, shape: str) -> Measured:
