@@ -8,15 +8,19 @@ disagreed, the residual would show it (and diagnose would chase a ghost).
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
+from leveler import jit
 from leveler.analysis.diagnose import gap
 from leveler.analysis.predict import Predictor, load_measured
 from leveler.analysis.synthetic import make_measured
 from leveler.settings import Config, load_config
+from leveler.sim import effects as effects_module
 from leveler.sim.effects import (
     EFFECTS,
     ActuatorDelay,
@@ -232,11 +236,18 @@ def test_two_plays_report_the_narrower_first_and_stroke_the_same() -> None:
     assert "20% of the stroke lags by up to 0.3 V and 10% by up to 1.2 V" in c.describe()
 
 
+_PLAYS = [pytest.param(effects_module._play_blocks, id="numpy-blocks"),
+          pytest.param("compiled", id="numba", marks=pytest.mark.skipif(
+              importlib.util.find_spec("numba") is None, reason="numba not installed"))]
+
+
+@pytest.mark.parametrize("impl", _PLAYS)
 @pytest.mark.parametrize("n", [1, 2, 63, 64, 65, 1000, 4097])
-def test_the_blocked_play_is_the_sample_by_sample_play_to_the_bit(n: int) -> None:
-    """`play` composes its clamps in blocks, not one sample after another; min and max
-    only, so it must equal the definition exactly, at every length (one sample, a part
-    block, whole blocks, many)."""
+def test_each_play_is_the_sample_by_sample_play_to_the_bit(n: int, impl: Any) -> None:
+    """numpy's `play` composes its clamps in blocks, numba's runs the definition compiled;
+    min and max only, so each must equal the definition exactly, at every length (one
+    sample, a part block, whole blocks, many), and `play` is one of them."""
+    fn = jit.compiled(effects_module._play_sequential) if impl == "compiled" else impl
     rng = np.random.default_rng(n)
     u = np.cumsum(rng.normal(0.0, 0.3, n)) + 75.0
     for width in (1e-3, 0.4, 2.0, 1e3):
@@ -244,4 +255,5 @@ def test_the_blocked_play_is_the_sample_by_sample_play_to_the_bit(n: int) -> Non
         for i, v in enumerate(u):
             y = min(max(y, v - width), v + width)
             out[i] = y
+        assert np.array_equal(fn(u, width), out), width
         assert np.array_equal(play(u, width), out), width

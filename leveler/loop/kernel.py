@@ -21,6 +21,8 @@ from typing import Any
 
 import numpy as np
 
+from leveler import jit
+
 # The float state: plant, pendulum, PID, loop.
 (V_APPLIED, V_TARGET, V_EFFECTIVE, LAG_V, THETA, OMEGA, PHI, SP, OUTPUT, UNCLAMPED, INTEGRAL,
  ERR, DF, PREV, R_LAST, RES_WAIT_S, HELD_V, LAST_VALUE_M, LAST_GOOD_M) = range(19)
@@ -259,19 +261,11 @@ def cycles(s: np.ndarray, c: np.ndarray, k: np.ndarray, thermal: np.ndarray,
 
 
 def compiled() -> Callable[..., tuple[int, int]] | None:
-    """`cycles` compiled by numba (cached on disk after the first compile), or None when
-    numba is not installed (`pip install lab-leveler[fast]`)."""
+    """`cycles` compiled by numba (`leveler.jit`), or None when numba is not installed
+    (`pip install lab-leveler[fast]`)."""
     global _compiled
     if _compiled is None:
-        try:
-            import numba
-        except ImportError:
-            _compiled = False
-        else:
-            try:
-                _compiled = numba.njit(cache=True, nogil=True)(cycles)
-            except RuntimeError:  # no writable cache directory: compile in each process
-                _compiled = numba.njit(nogil=True)(cycles)
+        _compiled = jit.compiled(cycles) or False
     return _compiled or None
 
 

@@ -1,0 +1,24 @@
+"""numba's compiled form of a plain function, when numba is installed (the `fast` extra).
+
+One place decides how: cached on disk after the first compile (a second process loads it
+in ~0.3 s), compiled afresh in each process where no cache directory is writable. A
+caller keeps a numpy or interpreted path for when this gives None: numba is optional, and
+the real-time daemon never imports it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+
+def compiled(fn: Callable[..., Any]) -> Callable[..., Any] | None:
+    """`fn` compiled by numba's njit, or None when numba is not installed."""
+    try:
+        import numba
+    except ImportError:
+        return None
+    try:
+        return numba.njit(cache=True, nogil=True)(fn)  # type: ignore[no-any-return]
+    except RuntimeError:  # no writable cache directory
+        return numba.njit(nogil=True)(fn)  # type: ignore[no-any-return]
