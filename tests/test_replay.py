@@ -225,7 +225,7 @@ def test_the_start_states_fit_as_a_direct_solve_does_and_keep_nanometre_shapes_o
     where that is well posed (3 h), and on a day keeps shapes of nanometres beside the
     offset: numpy's lstsq cuts singular values under eps x rows of the largest, and a
     column of ones over 864,000 samples sits 1e12 above them."""
-    from leveler.analysis.predict import _offset_and_shapes
+    from leveler.analysis.predict import _StartStates
 
     rng = np.random.default_rng(3)
     for n in (108_000, 864_000):
@@ -235,7 +235,7 @@ def test_the_start_states_fit_as_a_direct_solve_does_and_keep_nanometre_shapes_o
                   1e-9 * ring * np.sin(4.4 * t)]
         truth = 0.7 * shapes[0] - 2.0 * shapes[1] + 1.5 * shapes[2]
         r = 3e-9 + truth + 1e-10 * rng.standard_normal(n)
-        fit = _offset_and_shapes(r, shapes)
+        fit = _StartStates(shapes).fit(r)
         np.testing.assert_allclose(fit - fit.mean(), truth - truth.mean(),
                                    atol=1e-2 * np.ptp(truth))
         if n == 108_000:

@@ -20,6 +20,7 @@ terms fitted with it; the no-bump side of every comparison is the block's own sp
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -86,11 +87,23 @@ class Spectra:
         self.under = np.concatenate(under)[self._order]
 
     def _deviance(self, f0_hz: float, q: float, rms_m: float) -> float:
+        return self._by_level(f0_hz, q)(rms_m)
+
+    def _by_level(self, f0_hz: float, q: float) -> Callable[[float], float]:
+        """`_deviance` at this frequency and Q as a function of the level alone: the
+        level's search calls it a dozen times a point, and the band's shape, its bins and
+        p / s0 are the same each time (`mode_psd`'s arithmetic, in its order)."""
         reach = math.exp(8.0 / q + 0.5)  # |ln(f / f0)| < 8 / q + 0.5
         near = self._between(f0_hz / reach, f0_hz * reach)
-        s0, p = self.s0[near], self.p[near]
-        s1 = self.under[near] + mode_psd(self.f_hz[near], f0_hz, q, rms_m)
-        return 2.0 * float(np.sum(np.log(s0 / s1) + p / s0 - p / s1)) / ENBW_BINS
+        s0, p, under = self.s0[near], self.p[near], self.under[near]
+        shape, width = band_pass_power(self.f_hz[near], f0_hz, q), math.pi * f0_hz / (2 * q)
+        p_s0 = p / s0
+
+        def deviance(rms_m: float) -> float:
+            s1 = under + rms_m**2 * shape / width
+            return 2.0 * float(np.sum(np.log(s0 / s1) + p_s0 - p / s1)) / ENBW_BINS
+
+        return deviance
 
     def deviance(self, f0_hz: float, q: float, rms_m: float) -> float:
         """2 ln L(smooth terms + bump) - 2 ln L(the blocks' own spectra), the smooth terms
@@ -121,7 +134,8 @@ class Spectra:
         excess = max(float(np.mean(self.p[near] - self.under[near])), 0.0)
         scale = math.sqrt(excess * math.pi * f0_hz / (2 * q)) or math.sqrt(
             float(np.mean(self.under[near])) * f0_hz / q)
-        res = minimize_scalar(lambda a: -self._deviance(f0_hz, q, scale * math.exp(a)),
+        deviance = self._by_level(f0_hz, q)
+        res = minimize_scalar(lambda a: -deviance(scale * math.exp(a)),
                               bounds=(-8.0, 4.0), method="bounded", options={"xatol": 1e-3})
         dev = -float(res.fun)
         return (scale * math.exp(float(res.x)), dev) if dev > 0 else (0.0, 0.0)

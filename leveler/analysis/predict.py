@@ -337,6 +337,8 @@ class Predictor:
         # replay fits the pendulum's start; diagnose skips the first minutes instead (with the
         # swing free in every fit, a tuning case's actuator delay was taken for hysteresis)
         self._ringing = self.ringing() if ringing else []
+        own = self.start_shapes(EffectsParams())
+        self._own_states = _StartStates(own) if own else None
         self.effects = params.effects
         self.base = self.predict(self.effects)
 
@@ -374,14 +376,24 @@ class Predictor:
         `phi_end` (`leveler.sim.pendulum.ramp_terms`): each step's change injects into
         [theta, omega] at the step's end, and the held pendulum carries it on. Both run
         through the pendulum's one denominator in one filter (every replay does this)."""
-        dphi = np.diff(phi_end, prepend=phi_end[:1])
-        g_theta, g_omega = self._ramp_theta * dphi, self._ramp_omega * dphi
+        # In place where it can be, the same operations in the same order: a fit replays
+        # a day hundreds of times, and each temporary is 7 MB to write.
+        dphi = np.empty(len(phi_end))
+        dphi[0] = phi_end[0] - phi_end[0]
+        np.subtract(phi_end[1:], phi_end[:-1], out=dphi[1:])
+        g_theta = self._ramp_theta * dphi
         (_, e12), (_, e22) = self._e
         d = phi - phi[0]
         w = np.convolve(d, self._b)[: len(d)]
         w[1:] += g_theta[:-1]
-        w[2:] += e12 * g_omega[:-2] - e22 * g_theta[:-2]
-        return self.arm_m * (self._amp * phi[0] + lfilter([1.0], self._a, w))
+        turn = self._ramp_omega[:-2] * dphi[:-2]
+        turn *= e12
+        turn -= e22 * g_theta[:-2]
+        w[2:] += turn
+        x = lfilter([1.0], self._a, w)
+        x += self._amp * phi[0]
+        x *= self.arm_m
+        return x
 
     def thermal_transient(self) -> np.ndarray | None:
         """Shape of the thermal lag's unknown initial state (a nuisance the fit removes)."""
@@ -442,7 +454,11 @@ class Predictor:
         sensor effects included, leaves: they decay within a few lags, and fitted once here
         they cannot pass for a drift later on. A log that starts out of equilibrium would
         otherwise hand a temperature coupling a transient it cannot follow."""
-        return _offset_and_shapes(self.meas.y_m - y_pred, shapes)
+        own = self._own_states
+        if own is None or len(own.shapes) != len(shapes) or not all(
+                a is b for a, b in zip(own.shapes, shapes, strict=False)):
+            return _StartStates(shapes).fit(self.meas.y_m - y_pred)
+        return own.fit(self.meas.y_m - y_pred)
 
     def _sensor(self, x: np.ndarray, effects: EffectsParams) -> np.ndarray:
         """The sensor stage, fed the displacement aligned with the readings: the table's
@@ -481,25 +497,34 @@ class Predictor:
         return self.predict(self.effects.with_effect(fx)).x_m - self.base.x_m
 
 
-def _offset_and_shapes(r: np.ndarray, shapes: list[np.ndarray]) -> np.ndarray:
-    """The least-squares fit of an offset plus `shapes` to `r`, less the offset.
+class _StartStates:
+    """The least-squares fit of an offset plus `shapes` to a residual, less the offset.
 
     By the normal equations of the centred, unit-scaled shapes, refined once against the
     residual (that refinement is what keeps it at a direct solve's precision): every
     replay of a candidate fits these states, and a direct solve of the tall system took
-    30 ms of a 40 ms replay of a day (a hysteresis fit replays it hundreds of times)."""
-    cols = np.array(shapes, dtype=float)  # one row a shape
-    means = cols.mean(axis=1)
-    cols -= means[:, None]
-    norms = np.linalg.norm(cols, axis=1)
-    norms[norms == 0] = 1.0
-    cols /= norms[:, None]
-    gram = cols @ cols.T
-    rc = r - float(np.mean(r))
-    coef = np.linalg.lstsq(gram, cols @ rc, rcond=None)[0]
-    fit = coef @ cols
-    coef += np.linalg.lstsq(gram, cols @ (rc - fit), rcond=None)[0]
-    return coef @ cols + float(np.dot(coef / norms, means))
+    30 ms of a 40 ms replay of a day (a hysteresis fit replays it hundreds of times). The
+    scaled shapes and their Gram matrix depend on the shapes alone, so a `Predictor`
+    keeps those of its own (`own_start_shapes`) for every replay."""
+
+    def __init__(self, shapes: list[np.ndarray]) -> None:
+        self.shapes = shapes
+        cols = np.array(shapes, dtype=float)  # one row a shape
+        self.means = cols.mean(axis=1)
+        cols -= self.means[:, None]
+        self.norms = np.linalg.norm(cols, axis=1)
+        self.norms[self.norms == 0] = 1.0
+        cols /= self.norms[:, None]
+        self.cols = cols
+        self.gram = cols @ cols.T
+
+    def fit(self, r: np.ndarray) -> np.ndarray:
+        cols, gram = self.cols, self.gram
+        rc = r - float(np.mean(r))
+        coef = np.linalg.lstsq(gram, cols @ rc, rcond=None)[0]
+        fit = coef @ cols
+        coef += np.linalg.lstsq(gram, cols @ (rc - fit), rcond=None)[0]
+        return coef @ cols + float(np.dot(coef / self.norms, self.means))
 
 
 def _unexplained_by_feedback(meas: Measured) -> np.ndarray:
