@@ -803,11 +803,19 @@ def _family(cls: type[Effect], r: _Round) -> tuple[list[Candidate], list[tuple[F
     fits = []
     # the held-out whitened residual without a candidate, for `bandgate`
     e0 = predictive_residual(n_train, n_test, white0_train, white0_test)
+    def penalty_of(fx: Effect) -> float:
+        return len(fx.free) * math.log(2 * len(w_test.f_hz))
+
     for guess in cls.guesses(ev):
         f = fit_effect(guess, pred, w_train, meas, n_train)
         fits.append(f)
-        fits += [fit_effect(v, pred, w_train, meas, n_train)
-                 for v in f.effect.variants()]
+        # A variant refines what its fit found (a second play, a second lag); where the
+        # fit found nothing in the training part there is nothing to refine. On the
+        # tuning logs every variant that held out came from a fit found there; on a null
+        # day the rest were a quarter of the detector's time.
+        if deviance(cost0_train, f.cost) > penalty_of(f.effect):
+            fits += [fit_effect(v, pred, w_train, meas, n_train)
+                     for v in f.effect.variants()]
     if cls is ExtraResonance:
         modes, ok = _rung_by_noise(ev, ev_test, len(w_test.f_hz), r.round, noise,
                                    (thresholds or {}).get(cls.name, 0.0))
@@ -824,12 +832,11 @@ def _family(cls: type[Effect], r: _Round) -> tuple[list[Candidate], list[tuple[F
         white_train = w_train.whiten(r_cand)
         white_test = w_test.whiten(r_cand)
         cost_test = predictive_cost(n_cand_train, n_cand, white_train, white_test)
-        k = len(f.effect.free)
         own = f.effect.held_out_deviance(ev_test)
         only_own = own is not None and f.effect.own_score_only
         own_score = -math.inf if own is None else own
         coherent = deviance(cost0_test, cost_test)
-        penalty = k * math.log(2 * len(w_test.f_hz))
+        penalty = penalty_of(f.effect)
         cand = Candidate(cls.name, f.effect.values(), deviance(cost0_train, f.cost),
                          own_score if only_own else max(coherent, own_score),
                          penalty, sigma=f.sigma, round=r.round,
