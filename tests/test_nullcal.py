@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from leveler.analysis import nullcal
+from leveler.analysis import nullcal, predict
 from leveler.analysis.predict import excitation_v, load_measured
 from leveler.analysis.synthetic import make_measured
 from leveler.cli.main import main
@@ -66,6 +66,41 @@ def test_a_null_run_follows_the_logs_schedule_and_modulation(modulated_log: Path
     assert np.array_equal(a.y_m, again.y_m) and not np.array_equal(a.y_m, b.y_m)
     assert 0.3 < np.std(a.y_m) / np.std(meas.y_m) < 3.0
     assert (a.sig.temperature_k is None) == (meas.sig.temperature_k is None)
+    # what the plate thermometer reads, its noise included, as the daemon logs it: the
+    # plate's own temperature moves by ~0.2 mK a sample, the noise by 1 mK
+    noise_k = meas.config.plant.thermal.thermometer_noise_k
+    assert a.sig.temperature_k is not None and noise_k > 0
+    scatter_k = float(np.std(np.diff(a.sig.temperature_k))) / math.sqrt(2)
+    assert scatter_k == pytest.approx(noise_k, rel=0.2)
+
+
+def test_forked_workers_calibrate_as_one_process_does(modulated_log: Path,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """The workers read the log from the fork (not pickled to each run) and keep its
+    excitation, read once before it; the statistics are the same runs' either way."""
+    meas = load_measured(modulated_log)
+    replays = []
+    real = predict._excitation_v
+    monkeypatch.setattr(predict, "_excitation_v", lambda m: replays.append(m) or real(m))
+    forked = nullcal.calibrate(meas, 2, jobs=2, key="k")
+    assert replays == [meas]  # once, here; each worker kept it
+    alone = nullcal.calibrate(meas, 2, jobs=1, key="k")
+    assert forked.runs == alone.runs == 2
+    assert ({k: sorted(v) for k, v in forked.statistics.items()}
+            == {k: sorted(v) for k, v in alone.statistics.items()})
+    assert forked.thresholds == alone.thresholds
+
+
+def test_the_excitation_of_the_last_two_logs_is_kept(modulated_log: Path,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """A null calibration's worker asks about the log and its own null run in turn."""
+    a, b, c = (load_measured(modulated_log) for _ in range(3))
+    replays = []
+    real = predict._excitation_v
+    monkeypatch.setattr(predict, "_excitation_v", lambda m: replays.append(m) or real(m))
+    for m in (a, b, a, b, c, b, a):
+        assert excitation_v(m) is excitation_v(m)
+    assert [next(i for i, x in enumerate((a, b, c)) if x is m) for m in replays] == [0, 1, 2, 0]
 
 
 def test_a_drawn_stand_stays_within_its_stated_tolerances() -> None:

@@ -36,6 +36,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
+from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
@@ -84,7 +85,9 @@ def simulate_null(meas: Measured, seed: int) -> Measured:
     """A log of the model with nothing missing, on `meas`'s schedule: where the loop was
     closed the logged controller closes it on the simulated readings (plus whatever else
     moved the voltage then, `excitation_v`); where it was open the logged voltage drives
-    the piezo. A log that does not say what its controller was is replayed open loop."""
+    the piezo. A log that does not say what its controller was is replayed open loop. The
+    temperature is what the plate thermometer reads (its noise and resolution), as in a
+    log the daemon writes, not the plate's own."""
     rng = np.random.default_rng([seed, 0x4E55])
     temperature = meas.sig.temperature_k is not None
     params = draw_plant(meas.config.plant, rng)
@@ -104,7 +107,7 @@ def simulate_null(meas: Measured, seed: int) -> Measured:
         else:
             y[i] = plant.measure()[1]
         if temp_k is not None:
-            temp_k[i] = plant.truth(i, i * dt).temperature_k
+            temp_k[i] = plant.thermometer_k()
         if on[i] and pid is not None and exc is not None:
             if not was_on:
                 pid.engage(y[i], held)
@@ -255,6 +258,7 @@ def calibrate(meas: Measured, runs: int, *, jobs: int = 1, alpha: float = ALPHA,
               progress: Callable[[int, int], None] | None = None) -> NullCalibration:
     """`runs` null runs (parallel over `jobs` processes), each a simulated log on `meas`'s
     schedule diagnosed in full; the thresholds at `alpha` false alarms per log."""
+    global _MEAS
     start = time.perf_counter()
     key = key or cache_key(meas, alpha)
     stats: dict[str, list[float]] = {}
@@ -270,8 +274,24 @@ def calibrate(meas: Measured, runs: int, *, jobs: int = 1, alpha: float = ALPHA,
         for s in seeds:
             add(_null_run(meas, s))
     else:
-        with ProcessPoolExecutor(jobs, initializer=one_blas_thread) as pool:
-            for fut in as_completed([pool.submit(_null_run, meas, s) for s in seeds]):
-                add(fut.result())
+        excitation_v(meas)  # read once here, and kept by every forked worker
+        _MEAS = meas
+        try:
+            with ProcessPoolExecutor(jobs, mp_context=get_context("fork"),
+                                     initializer=one_blas_thread) as pool:
+                for fut in as_completed([pool.submit(_null_run_forked, s) for s in seeds]):
+                    add(fut.result())
+        finally:
+            _MEAS = None
     return from_statistics(stats, alpha, key, time.perf_counter() - start)
+
+
+#: the log the forked workers of `calibrate` simulate: shared by the fork, not pickled to
+#: each run (a day is tens of MB), and the very object whose excitation they keep
+_MEAS: Measured | None = None
+
+
+def _null_run_forked(seed: int) -> dict[str, float]:
+    assert _MEAS is not None
+    return _null_run(_MEAS, seed)
 

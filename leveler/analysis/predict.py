@@ -147,9 +147,12 @@ def load_measured(path: str | Path, model: str | Path | None = None,
                     data.live)
 
 
-#: the last log `excitation_v` was asked about and its answer: a diagnosis asks four times
-#: about the same log, and each answer replays the controller sample by sample (3 s a day)
-_LAST_EXCITATION: tuple[Measured, np.ndarray | None] | None = None
+#: the last logs `excitation_v` was asked about and its answers, the latest last: a
+#: diagnosis asks four times about the same log, and each answer replays the controller
+#: sample by sample (1.3 s a day); a null calibration's worker asks about the log and its
+#: own simulated one in turn
+_EXCITATIONS: list[tuple[Measured, np.ndarray | None]] = []
+_EXCITATIONS_KEPT = 2
 
 
 def excitation_v(meas: Measured) -> np.ndarray | None:
@@ -161,13 +164,16 @@ def excitation_v(meas: Measured) -> np.ndarray | None:
     nothing about the actuator: "the piezo did not move" and "the table moved the other
     way" look the same, so diagnose does not look for actuator effects then.
     """
-    global _LAST_EXCITATION
-    if _LAST_EXCITATION is None or _LAST_EXCITATION[0] is not meas:
-        exc = _excitation_v(meas)
-        if exc is not None:
-            exc.flags.writeable = False  # shared by every caller: none may change it
-        _LAST_EXCITATION = (meas, exc)
-    return _LAST_EXCITATION[1]
+    for i, (seen, exc) in enumerate(_EXCITATIONS):
+        if seen is meas:
+            _EXCITATIONS.append(_EXCITATIONS.pop(i))
+            return exc
+    exc = _excitation_v(meas)
+    if exc is not None:
+        exc.flags.writeable = False  # shared by every caller: none may change it
+    _EXCITATIONS.append((meas, exc))
+    del _EXCITATIONS[:-_EXCITATIONS_KEPT]
+    return exc
 
 
 #: an open-loop part shorter than this [s] holds no modulation worth reading
