@@ -10,7 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from leveler.analysis.diagnose import MIN_PART_S, split
-from leveler.analysis.whittle import SMOOTH5_TRIM, Whitener, fast_length
+from leveler.analysis.whittle import Whitener, fast_length
 
 RATE_HZ = 10.0
 
@@ -57,14 +57,10 @@ def test_parts_too_short_to_say_anything_alone_are_joined_to_a_neighbour() -> No
 
 def test_a_block_is_cut_to_a_length_the_fft_does_fast() -> None:
     """A 24 h log's closed-loop block of 384,576 samples (2^6 x 3 x 2003) transforms ~14x
-    slower than one of 384,160 (2^5 x 5 x 7^4), and that ~1.8x slower than 384,000
-    (2^10 x 3 x 5^3): blocks lose under 1 % of their end (of 2s, 3s and 5s alone, under
-    SMOOTH5_TRIM), and every sample of what is left is used."""
-    assert fast_length(384576) == 384000 and fast_length(384160) == 384000
-    assert (384576 - 384000) / 384576 < SMOOTH5_TRIM
-    # the nearest of 2s, 3s and 5s is 843,750, 1.9 % shorter: 7s and 11s are the cheaper cut
-    assert fast_length(860160) == 860160 == 2 ** 13 * 3 * 5 * 7
-    assert fast_length(861000) == 860160
+    slower than one of 384,160 (2^5 x 5 x 7^4): blocks lose under 1 % of their end, and
+    every sample of what is left is used."""
+    assert fast_length(384576) == 384160
+    assert fast_length(2 ** 10 * 3 ** 2 * 11) == 2 ** 10 * 3 ** 2 * 11
     assert fast_length(17) == 16 and fast_length(1) == 1
     for n in (2003, 23908, 191424, 864001):
         m = fast_length(n)

@@ -15,7 +15,6 @@ gets credit for it.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import numpy as np
@@ -134,31 +133,20 @@ def octave_median(p: np.ndarray) -> np.ndarray:
     return med[octave]
 
 
-#: a block is cut to a length of 2s, 3s and 5s alone where that costs under this share more
-SMOOTH5_TRIM = 0.002
-
-
 def fast_length(n: int) -> int:
     """The longest length <= n whose prime factors are all <= 11: a block trimmed to it
     (by under 1 % at the sizes diagnose uses) transforms 10-20x faster than one of a
-    length with a large prime factor, and whitening is most of diagnose's time. Of 2, 3
-    and 5 alone where one is within SMOOTH5_TRIM of n: pocketfft's passes of 7 and 11
-    are slower (a day's modulated block of 384,160 = 2^5 x 5 x 7^4 takes 6.3 ms, 384,000
-    = 2^10 x 3 x 5^3 3.6 ms, and a null day's run transforms it 600 times)."""
-    five = _smooth_below(n, (2, 3, 5), math.ceil((1 - SMOOTH5_TRIM) * n))
-    return five or _smooth_below(n, (2, 3, 5, 7, 11), 1) or n
-
-
-def _smooth_below(n: int, primes: tuple[int, ...], least: int) -> int | None:
-    """The longest m in [least, n] whose prime factors are all in `primes`."""
-    for m in range(n, max(least, 2) - 1, -1):
+    length with a large prime factor, and whitening is most of diagnose's time."""
+    m = n
+    while m > 1:
         k = m
-        for p in primes:
+        for p in (2, 3, 5, 7, 11):
             while k % p == 0:
                 k //= p
         if k == 1:
             return m
-    return None
+        m -= 1
+    return n
 
 
 class Whitener:
