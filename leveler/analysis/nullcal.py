@@ -97,30 +97,33 @@ def simulate_null(meas: Measured, seed: int) -> Measured:
     on = (np.zeros(n, dtype=bool) if meas.engaged is None or exc is None
           else np.asarray(meas.engaged, dtype=bool))
     pid = PID(meas.controller.pid_config()) if meas.controller is not None else None
-    logged_u = meas.u_v.tolist()
-    y, u = np.empty(n), np.empty(n)
-    temp_k = np.empty(n) if temperature else None
+    # Python lists and bound methods in the loop: it runs once a sample, a day's 864,000
+    # times a run, and numpy's scalar indexing costs more than the plant's arithmetic.
+    logged_u, closed = meas.u_v.tolist(), on.tolist()
+    extra = exc.tolist() if exc is not None else None
+    block = plant.samples_per_cycle > 1
+    measure, command, step = plant.measure, plant.command, plant.step
+    y, u = [0.0] * n, [0.0] * n
+    temp_k = [0.0] * n if temperature else None
     was_on, held = False, logged_u[0]
     for i in range(n):
-        if plant.samples_per_cycle > 1:
-            y[i] = float(np.mean(plant.measure_block()[1]))
-        else:
-            y[i] = plant.measure()[1]
+        yi = float(np.mean(plant.measure_block()[1])) if block else measure()[1]
+        y[i] = yi
         if temp_k is not None:
             temp_k[i] = plant.thermometer_k()
-        if on[i] and pid is not None and exc is not None:
+        if closed[i] and pid is not None and extra is not None:
             if not was_on:
-                pid.engage(y[i], held)
-            held = pid.update(y[i], dt).command_v
-            v = held + float(exc[i])
+                pid.engage(yi, held)
+            held = pid.update(yi, dt).command_v
+            v = held + extra[i]
         else:
             v = held = logged_u[i]
-        was_on = bool(on[i])
-        u[i] = plant.command(v)
-        plant.step()
-    sig = Signals(meas.t_s, dt, temp_k)
-    return dataclasses.replace(meas, path=f"null run {seed}", sig=sig, u_v=u, y_m=y,
-                               bad_samples=0, incomplete="")
+        was_on = closed[i]
+        u[i] = command(v)
+        step()
+    sig = Signals(meas.t_s, dt, None if temp_k is None else np.array(temp_k))
+    return dataclasses.replace(meas, path=f"null run {seed}", sig=sig, u_v=np.array(u),
+                               y_m=np.array(y), bad_samples=0, incomplete="")
 
 
 def null_statistic(meas: Measured) -> dict[str, float]:
