@@ -4,6 +4,7 @@ came from; unusable logs get clear errors."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import re
 from pathlib import Path
@@ -242,6 +243,29 @@ def test_the_start_states_fit_as_a_direct_solve_does_and_keep_nanometre_shapes_o
             a = np.column_stack([np.ones(n), *shapes])
             coef = np.linalg.lstsq(a, r, rcond=None)[0]
             np.testing.assert_allclose(fit, a[:, 1:] @ coef[1:], atol=1e-6 * np.ptp(truth))
+
+
+@pytest.mark.skipif(importlib.util.find_spec("numba") is None, reason="numba not installed")
+def test_the_compiled_slewed_pass_is_numpys_to_the_bit(night: Path,
+                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """`pend_slewed`'s one compiled pass (injections, lfilter's recursion, offset and arm)
+    must give numpy's passes exactly: a replay is compared with others to 1e-12 of the
+    noise, and which one ran must not decide a verdict. Steps of every size, so the
+    slewing's injections are not zero."""
+    from leveler.analysis import predict
+
+    meas = load_measured(night)
+    pred = predict.Predictor(meas.config.plant, meas)
+    rng = np.random.default_rng(7)
+    n = len(meas.y_m)
+    phi_end = pred.actuator_tilt(np.cumsum(rng.normal(0.0, 0.5, n)) * rng.integers(0, 2, n))
+    phi = phi_end + 1e-7 * np.cumsum(rng.normal(size=n))
+    assert pred._a[0] == 1.0 and len(pred._a) >= 2  # a filter it compiles
+    compiled = pred.pend_slewed(phi, phi_end)
+    assert predict._slewed is not False  # it ran compiled
+    monkeypatch.setattr(predict, "_slewed", False)  # as without numba
+    assert np.array_equal(compiled, pred.pend_slewed(phi, phi_end))
+    assert np.ptp(compiled) > 0
 
 
 def test_a_predictor_set_up_from_memory_is_the_one_built_afresh(night: Path) -> None:
