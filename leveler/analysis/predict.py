@@ -347,12 +347,20 @@ class Predictor:
         own = self.start_shapes(EffectsParams())
         self._own_states = _StartStates(own) if own else None
         self.effects = params.effects
-        self.base = self.predict(self.effects)
+        self._base: Prediction | None = None
+
+    @property
+    def base(self) -> Prediction:
+        """The prediction of the base effects, made when first asked for: a recalibration
+        builds a `Predictor` per knob only for its response to the modulation."""
+        if self._base is None:
+            self._base = self.predict(self.effects)
+        return self._base
 
     def rebase(self, effects: EffectsParams) -> None:
         """Make `effects` the base that candidates are added to."""
         self.effects = effects
-        self.base = self.predict(effects)
+        self._base = None
 
     def _nominal_tilt(self) -> np.ndarray:
         """Disturbance tilt the nominal model can predict: thermal (if the temperature was
