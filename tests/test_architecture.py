@@ -13,8 +13,8 @@ SOURCE_ROOTS = {"leveler": REPO / "leveler", "leveler.drivers": REPO / "drivers/
                 "leveler.sim": REPO / "sim/leveler/sim"}
 
 #: modules at the root of `leveler`: the shared vocabulary and what composes the wings
-ROOT = {"errors": "kit", "records": "kit", "typed_config": "kit", "rt": "kit", "__init__": "kit",
-        "settings": "settings", "stand": "stand", "virtual": "virtual"}
+ROOT = {"errors": "kit", "records": "kit", "typed_config": "kit", "rt": "kit", "jit": "kit",
+        "__init__": "kit", "settings": "settings", "stand": "stand", "virtual": "virtual"}
 WINGS = {"loop", "daemon", "log", "analysis", "procedures", "emulate", "live", "cli", "drivers",
          "sim"}
 
