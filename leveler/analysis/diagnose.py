@@ -809,7 +809,7 @@ def _family(cls: type[Effect], r: _Round) -> tuple[list[Candidate], list[tuple[F
     for guess in cls.guesses(ev):
         f = fit_effect(guess, pred, w_train, meas, n_train)
         fits.append(f)
-        # A variant refines what its fit found (a second play, a second lag); where the
+        # A variant refines what its fit found (a second play; a sine's sawtooth); where the
         # fit found nothing in the training part there is nothing to refine. On the
         # tuning logs every variant that held out came from a fit found there; on a null
         # day the rest were a quarter of the detector's time.
