@@ -1,17 +1,20 @@
 """numba's compiled form of a plain function, when numba is installed (the `fast` extra).
 
-One place decides how: cached on disk after the first compile (a second process loads it
-in ~0.3 s), compiled afresh in each process where no cache directory is writable. A
-caller keeps a numpy or interpreted path for when this gives None: numba is optional, and
-the real-time daemon never imports it.
+One place decides how: once a process per function (kept here, so callers ask at every
+call), cached on disk after the first compile (a second process loads it in ~0.3 s),
+compiled afresh in each process where no cache directory is writable. A caller keeps a
+numpy or interpreted path for when this gives None: numba is optional, and the real-time
+daemon never imports it.
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import Any
 
 
+@functools.cache
 def compiled(fn: Callable[..., Any]) -> Callable[..., Any] | None:
     """`fn` compiled by numba's njit, or None when numba is not installed."""
     try:

@@ -400,7 +400,7 @@ class Predictor:
         w = np.convolve(d, self._b)[: len(d)]
         (_, e12), (_, e22) = self._e
         offset = self._amp * phi[0]
-        fast = _compiled_slewed_pass()
+        fast = jit.compiled(_slewed_pass)
         if fast is not None and self._a[0] == 1.0 and len(self._a) >= 2:
             return fast(w, phi_end, self._ramp_theta, self._ramp_omega, e12, e22,
                         np.ascontiguousarray(self._a, dtype=float), float(offset),
@@ -575,16 +575,6 @@ def _slewed_pass(w: np.ndarray, phi_end: np.ndarray, ramp_theta: np.ndarray,
         z[m - 1] = x * 0.0 - y * a[m]
         out[i] = (y + offset) * arm
     return out
-
-
-_slewed: Any = None
-
-
-def _compiled_slewed_pass() -> Callable[..., np.ndarray] | None:
-    global _slewed
-    if _slewed is None:
-        _slewed = jit.compiled(_slewed_pass) or False
-    return _slewed or None
 
 
 def _unexplained_by_feedback(meas: Measured) -> np.ndarray:

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Any
 
 import numpy as np
 
@@ -263,10 +262,4 @@ def cycles(s: np.ndarray, c: np.ndarray, k: np.ndarray, thermal: np.ndarray,
 def compiled() -> Callable[..., tuple[int, int]] | None:
     """`cycles` compiled by numba (`leveler.jit`), or None when numba is not installed
     (`pip install lab-leveler[fast]`)."""
-    global _compiled
-    if _compiled is None:
-        _compiled = jit.compiled(cycles) or False
-    return _compiled or None
-
-
-_compiled: Any = None
+    return jit.compiled(cycles)

@@ -541,13 +541,8 @@ def play(u: np.ndarray, width_v: float) -> np.ndarray:
     play takes 4 ms as numba's compiled loop over the samples (`_play_sequential`), 12-24
     ms as numpy's blocked scan (`_play_blocks`, where numba is not installed). Both give
     the definition's result to the bit."""
-    global _play
-    if _play is None:
-        _play = jit.compiled(_play_sequential) or _play_blocks
-    return _play(np.ascontiguousarray(u, dtype=float), float(width_v))  # type: ignore[no-any-return]
-
-
-_play: Callable[[np.ndarray, float], np.ndarray] | None = None
+    fn = jit.compiled(_play_sequential) or _play_blocks
+    return fn(np.ascontiguousarray(u, dtype=float), float(width_v))  # type: ignore[no-any-return]
 
 
 def _play_sequential(u: np.ndarray, width_v: float) -> np.ndarray:
