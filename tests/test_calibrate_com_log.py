@@ -19,6 +19,7 @@ from figure_capture import saved_figures
 from leveler.cli.main import main
 from leveler.procedures.drive_lines import drive_lines
 from leveler.procedures.pendulum_fit import fit_pendulum
+from leveler.sim.effects import play
 from leveler.sim.params import PendulumParams, PlantParams
 from leveler.sim.pendulum import PendulumModel
 
@@ -242,6 +243,44 @@ def test_modulate_reads_a_recorded_square_wave(tmp_path: Path,
     assert main(["import-csv", str(csv), "--out", str(log2)]) == 0
     capsys.readouterr()
     assert main(["modulate", str(log2), "--model", str(SIM_TOML)]) == 2
-    assert "no square-wave modulation of the piezo found" in capsys.readouterr().err
+    assert "no square or triangle modulation of the piezo found" in capsys.readouterr().err
     assert main(["modulate", "--sim"]) == 2
     assert "--amplitude-v and --period needed" in capsys.readouterr().err
+
+
+def test_modulate_reads_a_recorded_triangle_and_its_opening(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`leveler modulate LOG` on 5 x 150 s of a +-3 V triangle that starts at its low turn
+    (another system's phase), recorded at 10 Hz (each reading before that cycle's write, a
+    sample's lag otherwise: 0.016 V here) through a piezo whose stroke lags by a
+    play of 0.4 V half-width on 25 % of it: the shape is found from the command, the step
+    per volt is the model's (a play shifts each sweep, keeping its slope), and the opening
+    is 2 x 0.25 x 0.4 = 0.2 V."""
+    pe, dt = PlantParams().pendulum, 0.1
+    t = np.arange(12000) * dt
+    u = np.full(len(t), 75.0)
+    on = (t >= 211.7) & (t < 211.7 + 5 * 150)
+    ph = ((t[on] - 211.7) / 150) % 1.0
+    u[on] += 3.0 * np.where(ph < 0.5, 4 * ph - 1, 3 - 4 * ph)
+    stroke = u + 0.25 * (play(u, 0.4) - u)
+    model = PendulumModel(pe, dt)
+    model.settle(pe, TILT_PER_V * stroke[0])
+    y = np.empty(len(t))
+    for i, v in enumerate(stroke):  # read, then write: as the daemon logs a cycle
+        y[i] = model.theta * pe.sensor_arm_m
+        model.step(TILT_PER_V * v)
+    y += np.random.default_rng(5).normal(0, 1e-9, len(t))
+    csv, log = tmp_path / "t.csv", tmp_path / "t.mcap"
+    csv.write_text("t_s,actuator_V,sensor_m\n" + "\n".join(
+        f"{a!r},{b!r},{c!r}" for a, b, c in zip(t.tolist(), u.tolist(), y.tolist(),
+                                                 strict=True)) + "\n")
+    assert main(["import-csv", str(csv), "--out", str(log)]) == 0
+    capsys.readouterr()
+    assert main(["modulate", str(log), "--model", str(SIM_TOML), "--json"]) == 0
+    (wave,) = json.loads(capsys.readouterr().out)["waves"]
+    assert wave["wave"]["shape"] == "triangle"
+    assert wave["wave"]["period_s"] == pytest.approx(150, rel=0.005)
+    assert wave["wave"]["amplitude_v"] == pytest.approx(3, rel=0.02)
+    assert wave["measured_over_model"] == pytest.approx(1, abs=0.01)
+    assert wave["opening_v"] == pytest.approx(0.2, abs=0.01)
+    assert wave["opening_z"] > 20

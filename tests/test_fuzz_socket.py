@@ -500,6 +500,7 @@ ARGS = {"tune": {**{k: NUMBER for k in TUNE_KEYS}, "persist": st.booleans() | JS
                  "force": st.booleans() | JSON},
         "reload": {"accept_dropped": st.booleans() | JSON, "force": st.booleans() | JSON},
         "modulate": {"amplitude_v": NUMBER, "period_s": NUMBER, "cycles": NUMBER,
+                     "shape": st.sampled_from(["square", "triangle", "sine"]) | JSON,
                      "force": st.booleans() | JSON},
         "watch": {"rate_hz": NUMBER}}
 REQUESTS = st.sampled_from(VERBS).flatmap(lambda verb: st.fixed_dictionaries(
@@ -522,8 +523,9 @@ def test_requests_are_refused_or_exactly_valid(req: dict[str, object]) -> None:
                 k == "slew_v_per_s" and v == math.inf)) for k, v in values.items())
             assert abs(values.get("setpoint_m", 0.0)) <= 1e-3
         elif ok["verb"] == "modulate":
-            amplitude, period, cycles, force = modulate_args(ok)
+            amplitude, period, cycles, shape, force = modulate_args(ok)
             assert amplitude > 0 and period > 0 and 1 <= cycles <= 10_000
+            assert shape in ("square", "triangle")
             assert isinstance(force, bool)
         elif ok["verb"] == "reload":
             accept_dropped, force = reload_args(ok)

@@ -545,8 +545,8 @@ def unseen(meas: Measured, act_excited: bool, found: list[str]) -> dict[str, str
         out[ActuatorHysteresis.name] = (
             "hardly testable here: a square modulation holds the piezo between its edges, "
             "where a hysteresis is only an offset, a gain the recalibration takes; only the "
-            "closed loop's reversals can show its loop, and a modulation that sweeps (a "
-            "triangle) would")
+            "closed loop's reversals can show its loop, and a modulation that sweeps would "
+            "(`leveler modulate --shape triangle`, which also measures the opening)")
     return out
 
 

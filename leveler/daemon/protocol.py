@@ -21,6 +21,8 @@ from typing import Any
 
 import orjson
 
+from leveler.loop.modulation import SHAPES
+
 VERSION = 1
 MAX_LINE_BYTES = 64 * 1024
 VERBS = ("status", "start", "stop", "tune", "watch", "rotate", "reset", "modulate", "reload")
@@ -291,12 +293,13 @@ def reload_args(req: dict[str, Any]) -> tuple[bool, bool]:
     return bool_arg(req, "reload", "accept_dropped"), bool_arg(req, "reload", "force")
 
 
-def modulate_args(req: dict[str, Any]) -> tuple[float, float, int, bool]:
-    """amplitude_v, period_s, cycles and force of a modulate request, type-checked."""
-    extra = sorted(set(req) - {"v", "verb", "amplitude_v", "period_s", "cycles", "force"})
+def modulate_args(req: dict[str, Any]) -> tuple[float, float, int, str, bool]:
+    """amplitude_v, period_s, cycles, shape and force of a modulate request, type-checked."""
+    extra = sorted(set(req) - {"v", "verb", "amplitude_v", "period_s", "cycles", "shape",
+                               "force"})
     if extra:
         raise ProtocolError(f"modulate: unknown key {extra[0]!r}; keys: amplitude_v, "
-                            "period_s, cycles, force")
+                            "period_s, cycles, shape, force")
     out: list[float] = []
     for key in ("amplitude_v", "period_s"):
         value = req.get(key)
@@ -307,7 +310,11 @@ def modulate_args(req: dict[str, Any]) -> tuple[float, float, int, bool]:
     cycles = req.get("cycles", 1)
     if isinstance(cycles, bool) or not isinstance(cycles, int) or not 1 <= cycles <= 10_000:
         raise ProtocolError(f"modulate: cycles must be an integer in 1..10000, got {cycles!r}")
-    return out[0], out[1], cycles, bool_arg(req, "modulate", "force")
+    shape = req.get("shape", "square")
+    if shape not in SHAPES:
+        raise ProtocolError(f"modulate: shape must be one of {', '.join(SHAPES)}, "
+                            f"got {shape!r}")
+    return out[0], out[1], cycles, shape, bool_arg(req, "modulate", "force")
 
 
 def encode(obj: dict[str, Any]) -> bytes:

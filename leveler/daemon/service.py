@@ -57,7 +57,7 @@ from leveler.errors import LogError
 from leveler.log.rotate import RotatingLog
 from leveler.loop.clock import RealtimeClock
 from leveler.loop.cycle import ENGAGED, FAULT, IDLE, MODULATING, Loop
-from leveler.loop.modulation import SquareWave
+from leveler.loop.modulation import Wave
 from leveler.loop.pid import PID, PIDGains
 from leveler.rt import demote_thread, freeze_heap, lock_memory, scheduler
 from leveler.settings import (
@@ -214,9 +214,9 @@ class Daemon:
                                     f"{self.cfg.log.retry_interval_s:g} s)") from None
             return {"ok": True, "path": str(path)}
         if verb == "modulate":
-            amplitude_v, period_s, cycles, force = modulate_args(req)
+            amplitude_v, period_s, cycles, shape, force = modulate_args(req)
             return {"ok": True, **self.call(
-                lambda t: self._modulate(t, who, amplitude_v, period_s, cycles, force))}
+                lambda t: self._modulate(t, who, amplitude_v, period_s, cycles, shape, force))}
         if verb == "tune":
             values, persist = tune_args(req)
             new = self._validated(values)
@@ -417,7 +417,7 @@ class Daemon:
         self._good_run = 0
 
     def _modulate(self, t: float, who: str, amplitude_v: float, period_s: float, cycles: int,
-                  force: bool) -> dict[str, Any]:
+                  shape: str, force: bool) -> dict[str, Any]:
         """Start a tilt modulation from idle; from engaged only if forced, and then close the
         loop again when the wave has ended."""
         loop = self.loop
@@ -427,20 +427,22 @@ class Daemon:
         if loop.state not in (IDLE, ENGAGED):
             raise ProtocolError(f"cannot modulate while {loop.state}")
         try:  # checked before the loop opens: a refused wave leaves it as it was
-            SquareWave(loop.held_v, amplitude_v, period_s, cycles).check_fits(
+            Wave(loop.held_v, amplitude_v, period_s, cycles, shape=shape).check_fits(
                 self.cfg.controller.output_min_v, self.cfg.controller.output_max_v, self.dt)
         except ValueError as exc:
             raise ProtocolError(f"modulate: {exc}") from None
         was_engaged = loop.state == ENGAGED
         if was_engaged:
             loop.disengage(t, f"modulate --force by {who}")
-        wave = loop.modulate(t, amplitude_v, period_s, cycles, f"modulate by {who}")
+        wave = loop.modulate(t, amplitude_v, period_s, cycles, f"modulate by {who}", shape)
         self._reengage_after_wave = was_engaged
         pend, pz = self.cfg.plant.pendulum, self.cfg.plant.piezo
         return {"wave": dataclasses.asdict(wave), "rate_hz": self.cfg.loop.rate_hz,
                 "model": {"sensor_m_per_rad": pend.amplification * pend.sensor_arm_m,
                           "tilt_rad_per_v": pz.gain_m_per_v
-                          / self.cfg.plant.platform.support_spacing_m}}
+                          / self.cfg.plant.platform.support_spacing_m,
+                          "pendulum": dataclasses.asdict(pend),
+                          "disturbances": self.cfg.plant.disturbances}}
 
     def _check_wall_clock(self, t: float) -> None:
         """Report a step of the system clock (more than WALL_STEP_REPORT_S since the last

@@ -29,7 +29,7 @@ from leveler.drivers.base import (
     Thermometer,
 )
 from leveler.loop.feedforward import Feedforward, FeedforwardFilter
-from leveler.loop.modulation import SquareWave
+from leveler.loop.modulation import Wave
 from leveler.loop.pid import PID
 from leveler.records import Environment, Event, Sample, Truth
 from leveler.typed_config import non_negative, positive
@@ -92,7 +92,7 @@ class Loop:
         self.held_v = actuator.safe_v
         self.safe_unconfirmed = False  # in fault: make_safe failed, applied_v is unknown
         self.last: Sample | None = None
-        self.wave: SquareWave | None = None  # the tilt modulation while `modulating`
+        self.wave: Wave | None = None  # the tilt modulation while `modulating`
         self._wall_ns = 0
         self.policy = policy or LoopConfig()
         self.fault_after_errors = self.policy.fault_after_errors
@@ -159,20 +159,20 @@ class Loop:
             self._end_modulation(t_s, f"modulation aborted: {reason}")
 
     def modulate(self, t_s: float, amplitude_v: float, period_s: float, cycles: int,
-                 reason: str = "requested") -> SquareWave:
-        """From idle, drive a square wave about the held voltage with the loop open; back to
-        idle at that voltage when it ends (or on `disengage`). ValueError if the wave does
-        not fit the controller's output range or the loop rate."""
+                 reason: str = "requested", shape: str = "square") -> Wave:
+        """From idle, drive a square or triangle wave about the held voltage with the loop
+        open; back to idle at that voltage when it ends (or on `disengage`). ValueError if
+        the wave does not fit the controller's output range or the loop rate."""
         if self.state != IDLE:
             raise ValueError(f"modulation needs the loop idle, not {self.state}")
-        wave = SquareWave(self.held_v, amplitude_v, period_s, cycles, start_t_s=t_s)
+        wave = Wave(self.held_v, amplitude_v, period_s, cycles, start_t_s=t_s, shape=shape)
         c = self.pid.config
         wave.check_fits(c.output_min_v, c.output_max_v, self.dt_s)
         self.wave = wave
         self._transition(MODULATING, reason, t_s)
         self.emit("procedure", "modulation started", t_s, center_v=wave.center_v,
                   amplitude_v=amplitude_v, period_s=period_s, cycles=cycles,
-                  start_t_s=t_s, end_t_s=wave.end_t_s)
+                  start_t_s=t_s, end_t_s=wave.end_t_s, shape=shape)
         return wave
 
     def _end_modulation(self, t_s: float, reason: str) -> None:

@@ -206,3 +206,14 @@ class PlantParams:
     sensor: SensorParams = field(default_factory=SensorParams)
     effects: EffectsParams = field(default_factory=EffectsParams)
     uncertainty: UncertaintyParams = field(default_factory=UncertaintyParams)
+
+    @property
+    def disturbances(self) -> list[tuple[float, float]]:
+        """(period [s], peak to peak tilt [rad]) of each periodic tilt disturbance the model
+        knows: its cooler, and a periodic disturbance among its effects (a tilt modulation
+        at one of their periods cannot tell them from its response)."""
+        out = [(self.cooler.period_s, self.cooler.peak_to_peak_rad)]
+        pd = self.effects.periodic_disturbance
+        if pd is not None:
+            out.append((pd.period_s, abs(pd.peak_to_peak_rad)))
+        return [(period, pp) for period, pp in out if pp > 0]
