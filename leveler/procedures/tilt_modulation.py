@@ -145,7 +145,8 @@ def model_reading(wave: Wave, t_s: np.ndarray, v: np.ndarray,
     voltage is the wave's command."""
     pend = PendulumParams(**(model["pendulum"] | {"model": "linear"}))
     dt_s = float(np.median(np.diff(t_s)))
-    command = np.array([wave.command_v(t) or wave.center_v for t in t_s])
+    command = np.array([wave.center_v if (c := wave.command_v(t)) is None else c
+                        for t in t_s])
     phi = model["tilt_rad_per_v"] * (np.where(np.isfinite(v), v, command) - wave.center_v)
     pm = PendulumModel(pend, dt_s)
     pm.settle(pend, float(phi[0]))
