@@ -210,6 +210,20 @@ def test_adjacent_steps_at_close_frequencies_are_two_lines() -> None:
     assert [x.transfer_m_per_v.real for x in lines] == pytest.approx([2e-9, 5e-9], rel=1e-3)
 
 
+def _modulate_recorded(csv: Path, t: np.ndarray, u: np.ndarray, y: np.ndarray,
+                       capsys: pytest.CaptureFixture[str]) -> list[dict]:  # type: ignore[type-arg]
+    """The waves `leveler modulate LOG --json` finds in a recording imported from a CSV of
+    time, piezo voltage and reading, as another system would write it."""
+    csv.write_text("t_s,actuator_V,sensor_m\n" + "\n".join(
+        f"{a!r},{b!r},{c!r}" for a, b, c in zip(t.tolist(), u.tolist(), y.tolist(),
+                                                 strict=True)) + "\n")
+    log = csv.with_suffix(".mcap")
+    assert main(["import-csv", str(csv), "--out", str(log)]) == 0
+    capsys.readouterr()
+    assert main(["modulate", str(log), "--model", str(SIM_TOML), "--json"]) == 0
+    return json.loads(capsys.readouterr().out)["waves"]  # type: ignore[no-any-return]
+
+
 def test_modulate_reads_a_recorded_square_wave(tmp_path: Path,
                                                capsys: pytest.CaptureFixture[str]) -> None:
     """`leveler modulate LOG`: the default stand's inverted pendulum under 6 x 60 s of
@@ -224,14 +238,8 @@ def test_modulate_reads_a_recorded_square_wave(tmp_path: Path,
     model.settle(pe, TILT_PER_V * 75)
     y = np.array([model.step(TILT_PER_V * v) for v in u]) * pe.sensor_arm_m
     y += np.random.default_rng(0).normal(0, 1e-9, len(t))
-    csv, log = tmp_path / "m.csv", tmp_path / "m.mcap"
-    csv.write_text("t_s,actuator_V,sensor_m\n" + "\n".join(
-        f"{a!r},{b!r},{c!r}" for a, b, c in zip(t.tolist(), u.tolist(), y.tolist(),
-                                                 strict=True)) + "\n")
-    assert main(["import-csv", str(csv), "--out", str(log)]) == 0
-    capsys.readouterr()
-    assert main(["modulate", str(log), "--model", str(SIM_TOML), "--json"]) == 0
-    (wave,) = json.loads(capsys.readouterr().out)["waves"]
+    csv = tmp_path / "m.csv"
+    (wave,) = _modulate_recorded(csv, t, u, y, capsys)
     assert wave["wave"]["period_s"] == pytest.approx(60, rel=0.005)
     assert wave["wave"]["amplitude_v"] == pytest.approx(2, rel=0.02)
     assert wave["measured_over_model"] == pytest.approx(1, abs=0.01)
@@ -270,14 +278,7 @@ def test_modulate_reads_a_recorded_triangle_and_its_opening(
         y[i] = model.theta * pe.sensor_arm_m
         model.step(TILT_PER_V * v)
     y += np.random.default_rng(5).normal(0, 1e-9, len(t))
-    csv, log = tmp_path / "t.csv", tmp_path / "t.mcap"
-    csv.write_text("t_s,actuator_V,sensor_m\n" + "\n".join(
-        f"{a!r},{b!r},{c!r}" for a, b, c in zip(t.tolist(), u.tolist(), y.tolist(),
-                                                 strict=True)) + "\n")
-    assert main(["import-csv", str(csv), "--out", str(log)]) == 0
-    capsys.readouterr()
-    assert main(["modulate", str(log), "--model", str(SIM_TOML), "--json"]) == 0
-    (wave,) = json.loads(capsys.readouterr().out)["waves"]
+    (wave,) = _modulate_recorded(tmp_path / "t.csv", t, u, y, capsys)
     assert wave["wave"]["shape"] == "triangle"
     assert wave["wave"]["period_s"] == pytest.approx(150, rel=0.005)
     assert wave["wave"]["amplitude_v"] == pytest.approx(3, rel=0.02)

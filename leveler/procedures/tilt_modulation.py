@@ -36,6 +36,8 @@ SETTLED_FRACTION = 0.5  # of each half period: the pendulum rings down in the fi
 #: direction term would take up
 SWEEP_SETTLE_FRACTION = 0.25
 COHERENT_ORDER = 20  # `coherent`: harmonic pairs m n up to this
+#: `unit` over an array of phases (0..1): the loop's own definition of the waves' forms
+forms = np.vectorize(unit, otypes=[float])
 
 
 @dataclass(frozen=True, slots=True)
@@ -82,7 +84,7 @@ def peak_to_peak(wave: Wave, t_s: np.ndarray, x: np.ndarray) -> float:
     on = (phase >= 0) & (phase < wave.cycles) & np.isfinite(x)
     if not on.any():
         raise ValueError("no samples in the wave")
-    form = np.array([unit(wave.shape, f % 1.0) for f in phase[on]])
+    form = forms(wave.shape, phase[on] % 1.0)
     a = np.column_stack([np.ones(len(form)), form])
     return 2.0 * float(np.linalg.lstsq(a, x[on], rcond=None)[0][1])
 
@@ -259,7 +261,7 @@ def waves(t_s: np.ndarray, u_v: np.ndarray, usable: np.ndarray | None = None) ->
         fits = []
         for shape, amplitude in (("square", fundamental * math.pi / 4),
                                  ("triangle", fundamental * math.pi**2 / 8)):
-            form = center + amplitude * np.array([unit(shape, f) for f in phase])
+            form = center + amplitude * forms(shape, phase)
             fits.append((float(np.mean((u_v[sel] - form) ** 2)), shape, amplitude))
         _, shape, amplitude = min(fits)
         wave = Wave(center, amplitude, period, cycles, start, shape)
@@ -274,10 +276,8 @@ def _refined(wave: Wave, t_s: np.ndarray, u_v: np.ndarray) -> Wave:
     form is smooth in both, unlike a square's edges."""
     from scipy.optimize import minimize
 
-    form = np.vectorize(lambda f: unit("triangle", f))
-
     def fit(x: np.ndarray) -> tuple[float, np.ndarray]:
-        a = np.column_stack([np.ones(len(t_s)), form(((t_s - x[0]) / x[1]) % 1.0)])
+        a = np.column_stack([np.ones(len(t_s)), forms("triangle", ((t_s - x[0]) / x[1]) % 1.0)])
         coef, *_ = np.linalg.lstsq(a, u_v, rcond=None)
         return float(np.mean((u_v - a @ coef) ** 2)), coef
 
