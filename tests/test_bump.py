@@ -65,3 +65,24 @@ def test_white_noise_holds_no_bump() -> None:
     assert bump.deviance < 3 * math.log(40_000)  # below a penalty for its 3 parameters
     y = 1.2e-9 * rng.standard_normal(40_000)
     assert Spectra(_blocks(y), y).deviance(bump.f0_hz, bump.q, bump.rms_m) < 3.0
+
+
+def test_a_levels_deviance_is_whittles_ratio_summed_directly() -> None:
+    """`Spectra._by_level` sums the no-bump side once and the bump side per level; the
+    difference must be Whittle's log-likelihood ratio of S0 + bump against S0, bin by bin,
+    on the bins near the mode, to far below the tolerance a level search works to (here
+    over the blocks' own spectra, before any refit of the smooth terms)."""
+    from leveler.analysis.whittle import ENBW_BINS
+
+    rng = np.random.default_rng(9)
+    x = 1.2e-9 * rng.standard_normal(40_000) + _mode_noise(rng, 42_000, 2.0, 12.0, 2e-9)
+    spectra = Spectra(_blocks(x), x)
+    f0, q = 2.0, 12.0
+    reach = math.exp(8.0 / q + 0.5)
+    near = (spectra.f_hz > f0 / reach) & (spectra.f_hz < f0 * reach)
+    s0, p = spectra.s0[near], spectra.p[near]
+    for rms in (1e-10, 2e-9, 5e-9):
+        s1 = s0 + mode_psd(spectra.f_hz[near], f0, q, rms)
+        direct = 2.0 * float(np.sum(np.log(s0 / s1) + p / s0 - p / s1)) / ENBW_BINS
+        assert spectra._deviance(f0, q, rms) == pytest.approx(direct, rel=1e-9, abs=1e-9)
+    assert spectra._deviance(f0, q, 2e-9) > 100  # a level the data hold gains

@@ -134,3 +134,23 @@ def test_a_modulation_is_found_where_it_is_a_line_and_not_in_a_drift() -> None:
     assert f is not None and f == pytest.approx(1 / 163.0, rel=1e-3)
     assert modulation_hz(np.cumsum(rng.normal(0.0, 0.01, len(t))), dt) is None
     assert modulation_hz(None, dt) is None
+
+
+@pytest.mark.parametrize("n,period_s", [(36_001, 287.0), (50_000, 61.3), (9_000, 6.0)])
+def test_the_modulations_refinement_is_the_direct_sums_pick(n: int, period_s: float) -> None:
+    """The 101 trial frequencies between bins are one chirp-z transform: it must pick the
+    trial that the plain sum of x exp(-2 pi i f t) over the record picks, for lines on and
+    between bins (an error in its start or step would move the pick a trial or more)."""
+    from leveler.analysis.whittle import hann
+
+    rng = np.random.default_rng(n)
+    dt = 0.1
+    t = np.arange(n) * dt
+    x = np.sign(np.sin(2 * np.pi * t / period_s + 0.3)) + 0.2 * rng.normal(size=n)
+    found = modulation_hz(x, dt)
+    x = x - np.mean(x)
+    k = int(np.argmax(np.abs(np.fft.rfft(x * hann(n))[8:]) ** 2)) + 8
+    trial = (k + np.linspace(-1.0, 1.0, 101)) / (n * dt)
+    power = [abs(np.sum(x * np.exp(-2j * np.pi * f * t))) for f in trial]
+    assert found == trial[int(np.argmax(power))]
+    assert found == pytest.approx(1 / period_s, rel=2e-3)

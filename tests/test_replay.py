@@ -269,6 +269,27 @@ def test_the_compiled_slewed_pass_is_numpys_to_the_bit(night: Path,
     assert np.ptp(compiled) > 0
 
 
+@pytest.mark.skipif(importlib.util.find_spec("numba") is None, reason="numba not installed")
+def test_the_compiled_ramp_gain_is_numpys_to_the_bit(night: Path,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """`ramp_gain`'s Horner sums compiled must be numpy's passes exactly, for ramps of
+    every length up to the step (zero ones included: a held voltage)."""
+    from leveler import jit
+    from leveler.sim import pendulum
+
+    meas = load_measured(night)
+    dt = meas.dt_s
+    terms = pendulum.ramp_terms(meas.config.plant.pendulum, dt)
+    tau = np.random.default_rng(3).uniform(0.0, dt, 20_000)
+    tau[::3] = 0.0
+    compiled = pendulum.ramp_gain(terms, tau)
+    assert jit.compiled(pendulum._horner) is not None  # it ran compiled
+    monkeypatch.setattr(jit, "compiled", lambda fn: None)  # as without numba
+    assert np.array_equal(compiled, pendulum.ramp_gain(terms, tau))
+    assert compiled.shape == (20_000, 2) and np.all(compiled[tau == 0] == 0)
+    assert np.ptp(compiled[:, 0]) > 0 and np.ptp(compiled[:, 1]) > 0
+
+
 def test_a_predictor_set_up_from_memory_is_the_one_built_afresh(night: Path) -> None:
     """`Predictor` keeps the set-up its knobs do not touch (`predict._memo`); what it
     hands out for one set of numbers must be what a fresh build gives, whatever was

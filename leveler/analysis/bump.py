@@ -92,16 +92,22 @@ class Spectra:
     def _by_level(self, f0_hz: float, q: float) -> Callable[[float], float]:
         """`_deviance` at this frequency and Q as a function of the level alone: the
         level's search calls it a dozen times a point, and the band's shape, its bins and
-        p / s0 are the same each time (`mode_psd`'s arithmetic, in its order)."""
+        the no-bump side, sum(ln s0 + p / s0), are the same each time. Summed apart, the
+        bump side is four passes over the band where the ratio's terms took eight (a null
+        day's run scores 4,000 levels: 4.0 -> 1.7 s); the two sides agree to ~1e-15 of
+        either."""
         reach = math.exp(8.0 / q + 0.5)  # |ln(f / f0)| < 8 / q + 0.5
         near = self._between(f0_hz / reach, f0_hz * reach)
         s0, p, under = self.s0[near], self.p[near], self.under[near]
         shape, width = band_pass_power(self.f_hz[near], f0_hz, q), math.pi * f0_hz / (2 * q)
-        p_s0 = p / s0
+        without = float(np.sum(np.log(s0))) + float(np.sum(p / s0))
 
         def deviance(rms_m: float) -> float:
-            s1 = under + rms_m**2 * shape / width
-            return 2.0 * float(np.sum(np.log(s0 / s1) + p_s0 - p / s1)) / ENBW_BINS
+            s1 = shape * (rms_m**2 / width)
+            s1 += under
+            p_s1 = np.divide(p, s1)
+            np.log(s1, out=s1)
+            return 2.0 * (without - float(np.sum(s1)) - float(np.sum(p_s1))) / ENBW_BINS
 
         return deviance
 

@@ -13,6 +13,7 @@ from collections.abc import Sequence
 
 import numpy as np
 from scipy.ndimage import median_filter
+from scipy.signal import czt
 
 from leveler.analysis.bump import Spectra
 from leveler.analysis.nuisance import Nuisance, with_shapes
@@ -358,7 +359,10 @@ def modulation_steps(meas: Measured) -> bool:
 def modulation_hz(x: np.ndarray | None, dt_s: float) -> float | None:
     """The frequency of the strongest line of `x` with at least eight cycles in it
     (refined between bins to 1/50 of one), or None when there is no line 100x above the
-    median of the octaves around it (no modulation; a drift is no line)."""
+    median of the octaves around it (no modulation; a drift is no line). The refinement's
+    101 trial frequencies are one chirp-z transform: a sum of complex exponentials over
+    the whole log for each took 0.46 s a call on a null day (two a run), the transform
+    0.09 s; the frequency picked is the same."""
     if x is None or len(x) < 64:
         return None
     x = x - np.mean(x)
@@ -366,9 +370,10 @@ def modulation_hz(x: np.ndarray | None, dt_s: float) -> float | None:
     k = int(np.argmax(p[8:])) + 8
     if not p[k] > 100 * np.median(p[k // 2 + 1:2 * k]):
         return None
-    t = np.arange(len(x)) * dt_s
     trial = (k + np.linspace(-1.0, 1.0, 101)) / (len(x) * dt_s)
-    power = [abs(np.sum(x * np.exp(-2j * np.pi * f * t))) for f in trial]
+    step_hz = trial[1] - trial[0]
+    power = np.abs(czt(x, m=len(trial), w=np.exp(-2j * np.pi * step_hz * dt_s),
+                       a=np.exp(2j * np.pi * trial[0] * dt_s)))
     return float(trial[int(np.argmax(power))])
 
 

@@ -260,8 +260,8 @@ def _memo(arrays: tuple[np.ndarray, ...], values: tuple[Any, ...], make: Callabl
     """`make()`, kept for the same `arrays` (the very objects, held so their ids stay
     theirs) and `values`, and handed out read-only: a recalibration builds a `Predictor`
     per knob it turns, and most of one's set-up (the slewing, the cooler's waveform, the
-    lagged temperature) depends on none of them; rebuilt, it was a fifth of a
-    modulated null day's diagnosis."""
+    lagged temperature, the thermal lag's start) depends on none of them; rebuilt, it was
+    a fifth of a modulated null day's diagnosis."""
     key = (tuple(id(a) for a in arrays), values)
     hit = _MEMO.pop(key, None)
     if hit is not None and all(a is b for a, b in zip(hit[0], arrays, strict=True)):
@@ -424,8 +424,9 @@ class Predictor:
         th = self.params.thermal
         if self.meas.sig.temperature_k is None or th.lag_s <= 0:
             return None
-        t = self.meas.t_s - self.meas.t_s[0]
-        return self.pend(np.exp(-t / th.lag_s))
+        t_s = self.meas.t_s
+        return _memo((t_s,), (self.params.pendulum, th.lag_s, self.meas.dt_s),
+                     lambda: self.pend(np.exp(-(t_s - t_s[0]) / th.lag_s)))
 
     def ringing(self) -> list[np.ndarray]:
         """Shapes of the pendulum's free motion from an unknown start (its two modes, e.g.

@@ -255,9 +255,10 @@ def recalibrate(meas: Measured, params: PlantParams, w: Whitener,
     # resonance frequency 2,500 times tighter than the sensor path, and an unscaled region
     # zig-zagged down that valley (a null day: 59 Jacobians, 54 s; scaled, 16 and 13 s,
     # the same cost to 1e-6 and every knob within 0.004 sigma).
-    res = least_squares(residuals, z0, diff_step=1e-3, bounds=(lo, hi), x_scale="jac",
+    r0 = residuals(z0)  # the nominal's, which the search also starts from: made once
+    res = least_squares(lambda z: r0.copy() if np.array_equal(z, z0) else residuals(z), z0,
+                        diff_step=1e-3, bounds=(lo, hi), x_scale="jac",
                         max_nfev=30 * (len(lo) + 1))
-    r0 = residuals(z0)
     deviance = float(r0 @ r0 - res.fun @ res.fun)
     corr: dict[tuple[str, str], float] = {}
     try:

@@ -181,7 +181,9 @@ class Whitener:
     def transform(self, x: np.ndarray) -> np.ndarray:
         """rfft of the Hann-windowed span of a full-length series."""
         seg = x[self.span]
-        return np.fft.rfft(self.window * (seg - seg.mean()))
+        centred = seg - seg.mean()
+        centred *= self.window
+        return np.fft.rfft(centred)
 
     def periodogram(self, x: np.ndarray) -> np.ndarray:
         return np.abs(self.transform(x)) ** 2 / self.norm
@@ -217,8 +219,10 @@ class Whitener:
         self.weight[0] = 0.0  # the mean: removed before the window, carries nothing
 
     def _stack(self, spec: np.ndarray) -> np.ndarray:
-        w = spec * self.weight
-        return np.concatenate([w.real, w.imag])
+        """`spec` (a transform's own array, changed in place) weighted, real parts then
+        imaginary ones."""
+        spec *= self.weight
+        return np.concatenate([spec.real, spec.imag])
 
     def whiten(self, residual: np.ndarray) -> np.ndarray:
         """Whitened residual: about unit variance per number where the noise model holds."""

@@ -78,6 +78,7 @@ class Plant:
         # the plate thermometer's noise: a stream of its own, so reading it (or not) leaves
         # every other draw of a seed unchanged
         self._rng_thermometer = np.random.default_rng([seed, 0x7E3])
+        self._thermometer_z: list[float] = []  # its draws to come, the next one last
 
     def tilt_rad(self) -> float:
         """True platform tilt now: piezo stroke / spacing + thermal + cooler + offset."""
@@ -116,12 +117,13 @@ class Plant:
         pend.step(self.tilt_rad())
         # The piezo got there by a ramp of |dv| / slew from the step's start, not a jump.
         tau = abs(self.v_applied - before) / self._slew_v_per_s
-        g_theta = g_omega = 0.0
-        for k_theta, k_omega in self._ramp_k:
-            g_theta = (g_theta + k_theta) * tau
-            g_omega = (g_omega + k_omega) * tau
-        pend.theta += g_theta * dphi
-        pend.omega += g_omega * dphi
+        if tau != 0.0:  # a held voltage (an open loop's plateau) adds nothing
+            g_theta = g_omega = 0.0
+            for k_theta, k_omega in self._ramp_k:
+                g_theta = (g_theta + k_theta) * tau
+                g_omega = (g_omega + k_omega) * tau
+            pend.theta += g_theta * dphi
+            pend.omega += g_omega * dphi
         self.n += 1
         self._i += 1
         if self._i >= len(self._block.noise_m):
@@ -170,8 +172,10 @@ class Plant:
         """What the plate thermometer reads now [K]: the plate temperature, its noise, its
         resolution."""
         th = self.params.thermal
+        if not self._thermometer_z:  # drawn a block at a time: the same stream, 4x cheaper
+            self._thermometer_z = self._rng_thermometer.standard_normal(4096).tolist()[::-1]
         temp = (self._block.temperature_k[self._i]
-                + th.thermometer_noise_k * float(self._rng_thermometer.standard_normal()))
+                + th.thermometer_noise_k * self._thermometer_z.pop())
         res = th.thermometer_resolution_k
         return round(temp / res) * res if res > 0 else temp
 
