@@ -165,9 +165,10 @@ def test_families_fitted_in_parallel_give_the_serial_result(tmp_path: Path) -> N
     order, with the same scores. (A BLAS with more threads rounds otherwise, and a fit
     may end 1e-4 elsewhere: the serial run takes the workers' one thread. Even so, a
     weak fit's end moves by 3e-4 of its deviance: numpy's sums round with the alignment
-    of their arrays in memory, which differs between processes. A fit that found nothing
-    in training has no sharp end at all: one such sawtooth's held-out score moved by
-    2.5e-3, 1312.9 against 1309.5, its training score by 2e-4; nothing gates on it.)"""
+    of their arrays in memory, which differs between processes. Its held-out score moves
+    more than its training one: a sawtooth's by 2.5e-3 (1312.9 against 1309.5) and a
+    hysteresis variant's by 2.2e-3 (80.69 against 80.86), where their training scores
+    moved by 2e-4; every verdict and note stays the same.)"""
     cfg, text = load_config(REPO / "config" / "sim.toml")
     truth = PeriodicDisturbance(shape="sawtooth", period_s=287.0, peak_to_peak_rad=2.4e-7,
                                 phase_s=31.0)
@@ -182,9 +183,7 @@ def test_families_fitted_in_parallel_give_the_serial_result(tmp_path: Path) -> N
     for a, b in zip(one.candidates, two.candidates, strict=True):
         assert (a.name, a.round, a.accepted, a.note) == (b.name, b.round, b.accepted, b.note)
         assert a.deviance_train == pytest.approx(b.deviance_train, rel=1e-3, abs=1e-2)
-        unfound = "not found in the training part" in a.note
-        assert a.deviance_test == pytest.approx(b.deviance_test, rel=1e-2 if unfound else 1e-3,
-                                                abs=1e-2)
+        assert a.deviance_test == pytest.approx(b.deviance_test, rel=5e-3, abs=1e-2)
     assert one.effects[0].effect.describe() == two.effects[0].effect.describe()
 
 
