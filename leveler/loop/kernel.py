@@ -125,13 +125,14 @@ def cycles(s: np.ndarray, c: np.ndarray, k: np.ndarray, thermal: np.ndarray,
             s[THETA], s[OMEGA] = th, om
         # -- Plant.step: the ramp the piezo took
         ramp_s = abs(dv) / k[K_SLEW_V_PER_S]
-        g_theta = 0.0
-        g_omega = 0.0
-        for m in range((len(k) - K_RAMP_TERMS) // 2):
-            g_theta = (g_theta + k[K_RAMP_TERMS + 2 * m]) * ramp_s
-            g_omega = (g_omega + k[K_RAMP_TERMS + 2 * m + 1]) * ramp_s
-        s[THETA] += g_theta * dphi_u
-        s[OMEGA] += g_omega * dphi_u
+        if ramp_s != 0.0:  # a held voltage adds nothing
+            g_theta = 0.0
+            g_omega = 0.0
+            for m in range((len(k) - K_RAMP_TERMS) // 2):
+                g_theta = (g_theta + k[K_RAMP_TERMS + 2 * m]) * ramp_s
+                g_omega = (g_omega + k[K_RAMP_TERMS + 2 * m + 1]) * ramp_s
+            s[THETA] += g_theta * dphi_u
+            s[OMEGA] += g_omega * dphi_u
         c[N] += 1
         i += 1
         c[BLOCK_I] = i
