@@ -1,6 +1,6 @@
-"""A fit's Jacobian steps by a fixed share of each parameter's scale (`diagnose.
-_least_squares`), not relative to the parameter: a fit starts at x = 0, where a relative step
-is scipy's 1.5e-8 fallback, below the rounding of a replay's solve."""
+"""A fit's Jacobian steps by a fixed share of each parameter's scale
+(`steps.stepped_least_squares`), not relative to the parameter: a fit starts at x = 0, where
+a relative step is scipy's 1.5e-8 fallback, below the rounding of a replay's solve."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
-from leveler.analysis.diagnose import FIT_STEP, _least_squares
+from leveler.analysis.steps import FIT_STEP, stepped_least_squares
 
 TARGET = np.array([3.0, -2.0])
 BOX = (np.full(2, -50.0), np.full(2, 50.0))
@@ -22,7 +22,8 @@ def _rounded(x: np.ndarray) -> np.ndarray:
 def test_a_fit_at_its_start_steps_by_its_scale_and_finds_the_minimum() -> None:
     assert least_squares(_rounded, np.zeros(2), diff_step=FIT_STEP, bounds=BOX,
                          max_nfev=60).x == pytest.approx(np.zeros(2))  # scipy's: stuck
-    assert _least_squares(_rounded, np.zeros(2), BOX, 60) == pytest.approx(TARGET, abs=1e-3)
+    fit = stepped_least_squares(_rounded, np.zeros(2), BOX, 60)
+    assert fit.x == pytest.approx(TARGET, abs=1e-3)
 
 
 def test_at_the_upper_bound_it_steps_back_and_never_outside() -> None:
@@ -34,6 +35,6 @@ def test_at_the_upper_bound_it_steps_back_and_never_outside() -> None:
         seen.append(x.copy())
         return x - np.array([80.0, -2.0])
 
-    x = _least_squares(fun, np.zeros(2), BOX, 60)
+    x = stepped_least_squares(fun, np.zeros(2), BOX, 60).x
     assert x == pytest.approx([50.0, -2.0], abs=1e-3)
     assert max(float(v[0]) for v in seen) <= 50.0

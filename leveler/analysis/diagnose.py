@@ -41,7 +41,7 @@ from multiprocessing import get_context
 from typing import Any
 
 import numpy as np
-from scipy.optimize import least_squares, minimize_scalar
+from scipy.optimize import minimize_scalar
 from scipy.signal import freqz
 
 from leveler.analysis.bandgate import BandChange, band_changes, bin_power, worse_band
@@ -66,6 +66,7 @@ from leveler.analysis.predict import (
     sensor_noise_m,
 )
 from leveler.analysis.recalibrate import Recalibration, apply, recalibrate, replayable
+from leveler.analysis.steps import stepped_least_squares
 from leveler.analysis.told import red_ceiling
 from leveler.analysis.whittle import ENBW_BINS, Blocks, Whitener, deviance, hann_psd
 from leveler.analysis.workers import one_blas_thread
@@ -312,45 +313,13 @@ def fit_effect(start: Effect, pred: Predictor, w: Whitener | Blocks, meas: Measu
     for f_max in start.fit_bands_hz() if keys else ():
         keep = w.below(f_max)
         proj = nuis.restricted(keep)
-        x = _least_squares(lambda v, p=proj, k=keep: solve(v, p, k)[0], x, box,
-                           10 * (len(keys) + 1))
+        x = stepped_least_squares(lambda v, p=proj, k=keep: solve(v, p, k)[0], x, box,
+                                  10 * (len(keys) + 1)).x
     if keys:
-        x = _least_squares(lambda v: solve(v)[0], x, box, 40 * (len(keys) + 1))
+        x = stepped_least_squares(lambda v: solve(v)[0], x, box, 40 * (len(keys) + 1)).x
     e, fitted = solve(x)
     fitted = fitted.canonical()
     return Fit(fitted, _sigma(fitted, pred, w, meas, e, nuis), float(e @ e))
-
-
-#: the finite-difference step of a fit's Jacobian, in units of each parameter's `scale`
-FIT_STEP = 1e-3
-
-
-def _least_squares(fun: Callable[[np.ndarray], np.ndarray], x0: np.ndarray,
-                   box: tuple[np.ndarray, np.ndarray], max_nfev: int) -> np.ndarray:
-    """`scipy.optimize.least_squares` from `x0` within `box`, its Jacobian by forward
-    differences of FIT_STEP (backwards at the upper bound). scipy's own `diff_step` is
-    relative to x, and a fit starts at x = 0 (the start, in scale units), where scipy
-    falls back to steps of 1.5e-8: a lag moved by 3 microseconds, below the solve's
-    rounding. A two-lag coupling's first step then went nowhere; it stopped at its start
-    (1,800 s and 120 s) with the lags "known" to 2 and 11 s (the truth's: 853 s and
-    355 s); stepped by its scale it goes to 941 s and 316 s."""
-    last: dict[str, np.ndarray] = {}
-
-    def f(x: np.ndarray) -> np.ndarray:
-        last["x"], last["e"] = x.copy(), fun(x)
-        return last["e"]
-
-    def jac(x: np.ndarray) -> np.ndarray:
-        e0 = last["e"] if "x" in last and np.array_equal(last["x"], x) else fun(x)
-        cols = []
-        for i in range(len(x)):
-            h = FIT_STEP if x[i] + FIT_STEP <= box[1][i] else -FIT_STEP
-            moved = x.copy()
-            moved[i] += h
-            cols.append((fun(moved) - e0) / h)
-        return np.column_stack(cols)
-
-    return least_squares(f, x0, jac=jac, bounds=box, max_nfev=max_nfev).x
 
 
 def _sigma(fx: Effect, pred: Predictor, w: Whitener | Blocks, meas: Measured,

@@ -25,9 +25,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from leveler.analysis.predict import Measured, Predictor, excitation_v
+from leveler.analysis.steps import stepped_least_squares
 from leveler.analysis.whittle import ENBW_BINS, Whitener
 from leveler.sim.effects import Effect
 from leveler.sim.params import PlantParams
@@ -256,9 +256,11 @@ def recalibrate(meas: Measured, params: PlantParams, w: Whitener,
     # zig-zagged down that valley (a null day: 59 Jacobians, 54 s; scaled, 16 and 13 s,
     # the same cost to 1e-6 and every knob within 0.004 sigma).
     r0 = residuals(z0)  # the nominal's, which the search also starts from: made once
-    res = least_squares(lambda z: r0.copy() if np.array_equal(z, z0) else residuals(z), z0,
-                        diff_step=1e-3, bounds=(lo, hi), x_scale="jac",
-                        max_nfev=30 * (len(lo) + 1))
+    # The refined effect's lags stepped by scipy's 1.5e-8 fallback at the start gave
+    # columns 150 times too long (rounding), hence `stepped_least_squares`.
+    res = stepped_least_squares(
+        lambda z: r0.copy() if np.array_equal(z, z0) else residuals(z), z0, (lo, hi),
+        30 * (len(lo) + 1), x_scale="jac")
     deviance = float(r0 @ r0 - res.fun @ res.fun)
     corr: dict[tuple[str, str], float] = {}
     try:
