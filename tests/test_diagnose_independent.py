@@ -132,6 +132,21 @@ def test_a_whole_log_refit_along_a_ridge_does_not_undo_what_held_out(tmp_path: P
     assert d.gap_before["rms_m"] > 30 * d.gap_after["rms_m"]
 
 
+def test_a_gain_error_beyond_half_with_the_paths_held_is_named(tmp_path: Path) -> None:
+    """A +31 % sensor gain error (tuning seed 103, strong) on a stand whose calibration
+    was drawn high (sensor path +9.6 %, actuator +5.8 %): both paths are disputed and held
+    at nominal, so the error takes the whole loop, +52 %. Its fit ran to the old +50 %
+    bound, was rejected there, and a hysteresis was named (59.6 -> 59.1 nm). A sensor
+    reading up to double is a gain error: named, and the held-out residual power comes
+    down to the noise in every band it filled."""  # 25 s
+    d, truth = _diagnose(tmp_path, "sensor_gain_error", "strong", seed=103)
+    assert [f.effect.name for f in d.effects] == ["sensor_gain_error"]
+    assert d.effects[0].effect.gain_error > truth["gain_error"]  # type: ignore[attr-defined]
+    for band in ("1-10 mHz", "10-100 mHz"):
+        g = d.gap_normalised[band]
+        assert g is not None and g["before"] > 100 and g["after"] < 2.0
+
+
 @pytest.mark.slow  # 60 s; make test-slow
 def test_a_gain_error_taken_before_a_coupling_is_dropped_as_a_calibration(
         tmp_path: Path) -> None:

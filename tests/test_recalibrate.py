@@ -253,6 +253,9 @@ def test_degenerate_fits_are_no_evidence() -> None:
         width_v=0.5, fraction=1.0).degenerate(ev)  # type: ignore[arg-type]
     assert "sits at its bound" in SensorGainError(gain_error=-0.5).degenerate(ev)  # type: ignore[arg-type]
     assert SensorGainError(gain_error=0.2).degenerate(ev) == ""  # type: ignore[arg-type]
+    # Reading half or double is the range, symmetric in the ratio: +60 % is no bound.
+    assert SensorGainError(gain_error=0.6).degenerate(ev) == ""  # type: ignore[arg-type]
+    assert "sits at its bound" in SensorGainError(gain_error=1.0).degenerate(ev)  # type: ignore[arg-type]
     # A periodic tilt on a harmonic of the modulation is the actuator's response to it.
     assert "the actuator's response" in PeriodicDisturbance(period_s=60.0 / 7).degenerate(ev)  # type: ignore[arg-type]
     assert PeriodicDisturbance(period_s=60.0 / 7 * 1.02).degenerate(ev) == ""  # type: ignore[arg-type]
