@@ -256,8 +256,8 @@ def recalibrate(meas: Measured, params: PlantParams, w: Whitener,
     # zig-zagged down that valley (a null day: 59 Jacobians, 54 s; scaled, 16 and 13 s,
     # the same cost to 1e-6 and every knob within 0.004 sigma).
     r0 = residuals(z0)  # the nominal's, which the search also starts from: made once
-    # The refined effect's lags stepped by scipy's 1.5e-8 fallback at the start gave
-    # columns 150 times too long (rounding), hence `stepped_least_squares`.
+    # Stepped by scipy's 1.5e-8 fallback at the start, a refined coupling's two lag
+    # columns came out 150 and 290 times too long (rounding): `stepped_least_squares`.
     res = stepped_least_squares(
         lambda z: r0.copy() if np.array_equal(z, z0) else residuals(z), z0, (lo, hi),
         30 * (len(lo) + 1), x_scale="jac")
