@@ -161,17 +161,21 @@ def test_a_gain_error_taken_before_a_coupling_is_dropped_as_a_calibration(
     assert d.params is not None and d.model.sensor_gain_error is None
 
 
-@pytest.mark.slow  # 15 s; make test-slow
+@pytest.mark.slow  # 20 s; make test-slow
 def test_an_effect_the_whole_log_does_not_confirm_is_not_taken(tmp_path: Path) -> None:
-    """A modulated null log (tuning seed 102006): a sensor drift held out at 1.5 pm/s and
-    the whole log's fit made it 0.24 pm/s, six times smaller. What held out is not what
-    the whole log says: not confirmed, nothing named."""
-    log = tmp_path / "null.mcap"
-    generate(None, "medium", 102006, log, hours=3.0, modulated=True,
+    """A medium Bouc-Wen piezo under a square (tuning seed 106): a 'mode' held out with
+    evidence 1,210 at gain -0.0035, and the whole log's fit made it -0.011, three times
+    larger. What held out is not what the whole log says: not confirmed, not named.
+    (Until stop 52 this was a null log's drift, seed 102006, held out at 1.5 pm/s and
+    0.24 pm/s on the whole log; with the recalibration stepped by its scale that drift
+    no longer holds out, and nothing is named there either.)"""
+    log = tmp_path / "hysteresis.mcap"
+    generate("actuator_hysteresis", "medium", 106, log, hours=3.0, modulated=True,
              nominal_config=REPO / "config" / "sim.toml", platform_inertia=True)
     d = diagnose(load_measured(log))
-    assert d.effects == []
-    assert any(c.note.startswith("the whole log's fit disagrees") for c in d.candidates)
+    assert "extra_resonance" not in [f.effect.name for f in d.effects]
+    assert any(c.name == "extra_resonance"
+               and c.note.startswith("the whole log's fit disagrees") for c in d.candidates)
 
 
 @pytest.mark.slow  # 23 s; the bench-diagnose scoreboard scores this family
