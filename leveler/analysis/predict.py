@@ -28,6 +28,7 @@ from leveler.settings import Config, load_config
 from leveler.sim.effects import Effect, EffectsParams, Signals
 from leveler.sim.params import CoolerParams, PlantParams
 from leveler.sim.pendulum import (
+    delayed_slew,
     discrete_matrices,
     free_step,
     linear_matrices,
@@ -278,14 +279,15 @@ def _memo(arrays: tuple[np.ndarray, ...], values: tuple[Any, ...], make: Callabl
 
 
 def _slewing(params: PlantParams, meas: Measured
-             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """`slewed`'s two series, and what each step's slew adds per unit dphi to the
-    pendulum's [theta, omega] at its end (`ramp_gain`: how long the piezo ramps)."""
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`slewed`'s two series, what each step's slew adds per unit dphi to the
+    pendulum's [theta, omega] at its end (`ramp_gain`), and how long the piezo ramps in
+    each step."""
     pz, dt = params.piezo, meas.dt_s
     v, lag_v = slewed(meas.u_v, pz.slew_v_per_s * dt)
-    tau_s = np.abs(np.diff(v, prepend=v[:1])) / pz.slew_v_per_s
-    ramp = ramp_gain(ramp_terms(params.pendulum, dt), np.minimum(tau_s, dt))
-    return v, lag_v, ramp[:, 0].copy(), ramp[:, 1].copy()
+    tau_s = np.minimum(np.abs(np.diff(v, prepend=v[:1])) / pz.slew_v_per_s, dt)
+    ramp = ramp_gain(ramp_terms(params.pendulum, dt), tau_s)
+    return v, lag_v, ramp[:, 0].copy(), ramp[:, 1].copy(), tau_s
 
 
 def _cooler_shape(co: CoolerParams, sig: Signals) -> np.ndarray:
@@ -333,7 +335,7 @@ class Predictor:
         self.static_m_per_rad = pe.sensor_arm_m * pe.amplification
         self._kv = pz.gain_m_per_v / params.platform.support_spacing_m
         self._ref = pz.ref_v
-        self._v, self._lag_v, self._ramp_theta, self._ramp_omega = _memo(
+        self._v, self._lag_v, self._ramp_theta, self._ramp_omega, self._tau_s = _memo(
             (meas.u_v,), (pe, pz.slew_v_per_s, meas.dt_s), lambda: _slewing(params, meas))
         self._b, self._a = pendulum_filter(params, meas.dt_s)
         # e^(A dt), whose characteristic polynomial is pendulum_filter's denominator
@@ -386,11 +388,14 @@ class Predictor:
         """Sensor displacement [m] for platform tilt phi, starting settled at phi[0]."""
         return self.arm_m * (self._amp * phi[0] + lfilter(self._b, self._a, phi - phi[0]))
 
-    def pend_slewed(self, phi: np.ndarray, phi_end: np.ndarray) -> np.ndarray:
+    def pend_slewed(self, phi: np.ndarray, phi_end: np.ndarray,
+                    inject: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """`pend` of `phi` plus what the piezo's slewing adds, its tilt at each step's end
         `phi_end` (`leveler.sim.pendulum.ramp_terms`): each step's change injects into
         [theta, omega] at the step's end, and the held pendulum carries it on. Both run
         through the pendulum's one denominator in one filter (every replay does this).
+        `inject`, the injections themselves (per step, in radians: a delayed piezo's,
+        `leveler.sim.pendulum.delayed_slew`), replaces the slews from each step's start.
 
         A fit replays a day hundreds of times: after the numerator's convolution, the
         injections and the denominator's recursion are one pass compiled by numba where
@@ -400,18 +405,20 @@ class Predictor:
         w = np.convolve(d, self._b)[: len(d)]
         (_, e12), (_, e22) = self._e
         offset = self._amp * phi[0]
+        if inject is None:
+            dphi = np.empty(len(phi_end))
+            dphi[0] = phi_end[0] - phi_end[0]
+            np.subtract(phi_end[1:], phi_end[:-1], out=dphi[1:])
+            g_theta, g_omega = self._ramp_theta * dphi, self._ramp_omega * dphi
+        else:
+            g_theta, g_omega = inject
         fast = jit.compiled(_slewed_pass)
         if fast is not None and self._a[0] == 1.0 and len(self._a) >= 2:
-            return fast(w, phi_end, self._ramp_theta, self._ramp_omega, e12, e22,
+            return fast(w, g_theta, g_omega, e12, e22,
                         np.ascontiguousarray(self._a, dtype=float), float(offset),
                         self.arm_m)
-        dphi = np.empty(len(phi_end))
-        dphi[0] = phi_end[0] - phi_end[0]
-        np.subtract(phi_end[1:], phi_end[:-1], out=dphi[1:])
-        g_theta = self._ramp_theta * dphi
         w[1:] += g_theta[:-1]
-        turn = self._ramp_omega[:-2] * dphi[:-2]
-        turn *= e12
+        turn = g_omega[:-2] * e12
         turn -= e22 * g_theta[:-2]
         w[2:] += turn
         x = lfilter([1.0], self._a, w)
@@ -445,14 +452,21 @@ class Predictor:
 
     def predict(self, effects: EffectsParams) -> Prediction:
         sig, u = self.meas.sig, self._v
+        delay = effects.actuator_delay
         for fx in effects.of("actuator"):
-            u = fx.apply(u, sig)
+            if fx is not delay:  # a rate-independent piezo: the same delayed or not
+                u = fx.apply(u, sig)
+        lag_v, inject = self._lag_v, None
+        if delay is not None and delay.delay_s > 0:
+            u, lag_v, ramps = delayed_slew(self.params.pendulum, sig.dt_s, u, self._tau_s,
+                                           delay.delay_s)
+            inject = self._kv * ramps[:, 0], self._kv * ramps[:, 1]
         phi_end = self._kv * (u - self._ref)  # where the piezo is at each step's end
-        phi_u = phi_end - self._kv * self._lag_v  # its mean over the step
+        phi_u = phi_end - self._kv * lag_v  # its mean over the step
         phi = phi_end + self.nominal_tilt
         for fx in effects.of("tilt"):
             phi = phi + fx.tilt(sig)  # type: ignore[attr-defined]
-        x = self.pend_slewed(phi, phi_end)
+        x = self.pend_slewed(phi, phi_end, inject)
         for fx in effects.of("response"):
             x = x + fx.response(phi_u, self.static_m_per_rad, sig)  # type: ignore[attr-defined]
         shapes = self.start_shapes(effects)
@@ -552,9 +566,8 @@ class _StartStates:
         return coef @ cols + float(np.dot(coef / self.norms, self.means))
 
 
-def _slewed_pass(w: np.ndarray, phi_end: np.ndarray, ramp_theta: np.ndarray,
-                 ramp_omega: np.ndarray, e12: float, e22: float, a: np.ndarray,
-                 offset: float, arm: float) -> np.ndarray:
+def _slewed_pass(w: np.ndarray, g_theta: np.ndarray, g_omega: np.ndarray, e12: float,
+                 e22: float, a: np.ndarray, offset: float, arm: float) -> np.ndarray:
     """`Predictor.pend_slewed` after its convolution, one sample after another: each
     step's injections, then scipy's lfilter([1], a) with a[0] = 1 (direct form II
     transposed, its zero numerator terms included), then the offset and the arm, each
@@ -565,11 +578,9 @@ def _slewed_pass(w: np.ndarray, phi_end: np.ndarray, ramp_theta: np.ndarray,
     for i in range(n):
         x = w[i]
         if i >= 1:
-            dp = phi_end[i - 1] - phi_end[i - 2] if i >= 2 else phi_end[0] - phi_end[0]
-            x = x + ramp_theta[i - 1] * dp
+            x = x + g_theta[i - 1]
         if i >= 2:
-            dp = phi_end[i - 2] - phi_end[i - 3] if i >= 3 else phi_end[0] - phi_end[0]
-            x = x + ((ramp_omega[i - 2] * dp) * e12 - e22 * (ramp_theta[i - 2] * dp))
+            x = x + (g_omega[i - 2] * e12 - e22 * g_theta[i - 2])
         y = z[0] + 1.0 * x
         for k in range(1, m):
             z[k - 1] = (z[k] + x * 0.0) - y * a[k]

@@ -19,7 +19,6 @@ displacement -> reading [m]). To add an effect: write its class here and list it
 from __future__ import annotations
 
 import math
-from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar, Literal, Protocol
@@ -468,7 +467,11 @@ MIN_DELAY_SAMPLES = 0.1
 
 @dataclass(frozen=True, slots=True)
 class ActuatorDelay(Effect):
-    """A transport delay between the logged command and the piezo moving (amplifier, bus)."""
+    """A transport delay between the logged command and the piezo moving (amplifier, bus).
+
+    It moves the timing of the piezo's slewing ramps, within a step and across steps, so
+    the plant and replay both step it with the pendulum (`leveler.sim.pendulum.
+    delayed_slew`), not as a stage on the voltage."""
 
     name: ClassVar[str] = "actuator_delay"
     stage: ClassVar[Stage] = "actuator"
@@ -479,26 +482,6 @@ class ActuatorDelay(Effect):
     linear: ClassVar[bool] = False
 
     delay_s: float = non_negative(0.0)
-
-    def apply(self, x: np.ndarray, sig: Signals) -> np.ndarray:
-        """u(t - delay) for a sampled-and-held u: linear between the two samples it straddles."""
-        m, f = divmod(max(self.delay_s, 0.0) / sig.dt_s, 1.0)
-        m = int(m)
-        pad = np.concatenate([np.full(m + 1, x[0]), x])
-        n = len(x)
-        return (1 - f) * pad[1 : n + 1] + f * pad[:n]
-
-    def stepper(self, dt_s: float) -> Callable[[float, float], float]:
-        m, f = divmod(self.delay_s / dt_s, 1.0)
-        past: deque[float] = deque(maxlen=int(m) + 2)
-
-        def step(v: float, t_s: float) -> float:
-            if not past:
-                past.extend([v] * (int(m) + 1))
-            past.append(v)  # past[-1] is now, past[-1 - k] is k samples ago
-            return (1 - f) * past[-1 - int(m)] + f * past[-2 - int(m)]
-
-        return step
 
     def scale(self, key: str) -> float:
         return max(self.delay_s, 0.05)

@@ -143,6 +143,55 @@ def _horner(terms: np.ndarray, tau: np.ndarray, out: np.ndarray) -> None:
         out[1, j] = omega
 
 
+@functools.lru_cache(maxsize=256)
+def late_terms(p: PendulumParams, dt_s: float, late_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """For a tilt change that starts `late_s` into a step (0 <= late_s < dt) instead of at
+    its start: (what a jump there adds to [theta, omega] at the step's end, per unit dphi,
+    beyond the same jump at the start; e^(-A late_s), which turns `ramp_terms`' sum for a
+    ramp from the start into the same ramp from late_s). Exactly: the jump moves the state
+    by [-1, c / J] at late_s, and phi is held from there to the end."""
+    a, _ = linear_matrices(p)
+    jump = np.array([-1.0, p.damping_nms_per_rad / p.inertia_kgm2])
+    late, full = _zoh_exp(p, dt_s - late_s), _zoh_exp(p, dt_s)
+    extra = (late[:2, :2] @ jump + late[:2, 2]) - (full[:2, :2] @ jump + full[:2, 2])
+    return extra, expm(-a * late_s)
+
+
+def delayed_slew(p: PendulumParams, dt_s: float, v: np.ndarray, tau_s: np.ndarray,
+                 delay_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A transport delay between the command and a slewing piezo, exactly: each step's
+    change of `v` (its end values), ramped over `tau_s` (<= dt) from the step's start,
+    starts `delay_s` later, a whole number of steps and a fraction of one; a ramp that no
+    longer ends within its step finishes in the next. (the piezo's voltage at each step's
+    end, how far its mean over the step sits below that, what the ramps add to [theta,
+    omega] at each step's end beyond jumps at the steps' starts per volt: `ramp_terms`).
+
+    Held at the mean of the two samples it straddles (as it was), a delay's change sat a
+    fraction of a step early and its ramp ran from the step's start: fitted to an
+    independent simulator's piezo, which switches within the step and then slews, delays
+    came out 1.3-1.5 times the truth under a square modulation and 0.86-1.0 times it in a
+    closed loop. The log starts settled: before it, the piezo held v[0]."""
+    whole, late = divmod(max(delay_s, 0.0), dt_s)
+    m = int(whole)
+    room = dt_s - late
+    dv = np.diff(v, prepend=v[:1])
+    first = np.where(tau_s > room, room / np.where(tau_s > room, tau_s, 1.0), 1.0)
+
+    def later(x: np.ndarray, k: int) -> np.ndarray:  # x[j - k], 0 before the log
+        return np.concatenate([np.zeros(min(k, len(x))), x[:len(x) - k]]) if k else x
+
+    part1, dur1 = later(first * dv, m), later(np.minimum(tau_s, room), m)
+    part2, dur2 = later((1.0 - first) * dv, m + 1), later(np.maximum(tau_s - room, 0.0), m + 1)
+    start = np.concatenate([np.full(min(m + 1, len(v)), v[0]), v[:len(v) - m - 1]])
+    end = start + part1
+    lag = (part1 * (late + 0.5 * dur1) + part2 * (0.5 * dur2)) / dt_s
+    terms = ramp_terms(p, dt_s)
+    extra, back = late_terms(p, dt_s, late)
+    inject = (part1[:, None] * (extra + ramp_gain(terms, dur1) @ back.T)
+              + part2[:, None] * ramp_gain(terms, dur2))
+    return end, lag, inject
+
+
 def _zoh(p: PendulumParams, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
     """Exact discretization of `linear_matrices` with phi held over dt."""
     e = _zoh_exp(p, dt_s)

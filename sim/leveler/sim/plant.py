@@ -10,6 +10,7 @@ platform tilt at t = n dt. Driver, replay and discrepancy tools all use this one
 from __future__ import annotations
 
 import math
+from collections import deque
 
 import numpy as np
 
@@ -17,7 +18,7 @@ from leveler.records import Truth
 from leveler.sim.disturbance import Block, Disturbances
 from leveler.sim.effects import ExtraResonance
 from leveler.sim.params import PlantParams
-from leveler.sim.pendulum import PendulumModel, ramp_terms
+from leveler.sim.pendulum import PendulumModel, delayed_slew, ramp_terms
 
 
 def slew_lag_v(dv: float | np.ndarray, max_dv: float) -> float | np.ndarray:
@@ -67,7 +68,14 @@ class Plant:
         self._slew_v_per_s = pz.slew_v_per_s
         self.pendulum.settle(params.pendulum, self.tilt_rad())
         fx = params.effects
-        self._actuator_fx = [e.stepper(dt_s) for e in fx.of("actuator")]
+        delay = fx.actuator_delay
+        self._delay_s = 0.0 if delay is None else delay.delay_s
+        self._actuator_fx = [e.stepper(dt_s) for e in fx.of("actuator") if e is not delay]
+        # a delayed piezo's last end values and ramp times (`delayed_slew`), the oldest
+        # first: the log's start is settled at the reference
+        keep = int(self._delay_s // dt_s) + 3
+        self._recent: tuple[deque[float], deque[float]] = (
+            deque([pz.ref_v] * keep, maxlen=keep), deque([0.0] * keep, maxlen=keep))
         self._sensor_fx = [e.stepper(dt_s) for e in fx.of("sensor")]
         self._resonances = [_Resonance(e, dt_s, params.pendulum.sensor_arm_m
                                        * params.pendulum.amplification,
@@ -108,6 +116,16 @@ class Plant:
             t_s = self.n * self.dt_s
             for f in self._actuator_fx:
                 v = f(v, t_s)
+        # The piezo got there by a ramp of |dv| / slew from the step's start, not a jump.
+        tau = abs(self.v_applied - before) / self._slew_v_per_s
+        inject = None
+        if self._delay_s > 0:  # ... from later within the step, or a step later
+            self._recent[0].append(v)
+            self._recent[1].append(tau)
+            ends, lags, ramps = delayed_slew(self.params.pendulum, self.dt_s,
+                                             np.array(self._recent[0]),
+                                             np.array(self._recent[1]), self._delay_s)
+            v, self._lag_v, inject = float(ends[-1]), float(lags[-1]), ramps[-1]
         dphi = self._tilt_per_v * (v - self.v_effective)
         self.v_effective = v
         if self._resonances:
@@ -115,9 +133,10 @@ class Plant:
             self._extra_m = sum(r.step(phi_u) for r in self._resonances)
         pend = self.pendulum
         pend.step(self.tilt_rad())
-        # The piezo got there by a ramp of |dv| / slew from the step's start, not a jump.
-        tau = abs(self.v_applied - before) / self._slew_v_per_s
-        if tau != 0.0:  # a held voltage (an open loop's plateau) adds nothing
+        if inject is not None:
+            pend.theta += self._tilt_per_v * float(inject[0])
+            pend.omega += self._tilt_per_v * float(inject[1])
+        elif tau != 0.0:  # a held voltage (an open loop's plateau) adds nothing
             g_theta = g_omega = 0.0
             for k_theta, k_omega in self._ramp_k:
                 g_theta = (g_theta + k_theta) * tau
