@@ -458,9 +458,10 @@ class Predictor:
                 u = fx.apply(u, sig)
         lag_v, inject = self._lag_v, None
         if delay is not None and delay.delay_s > 0:
-            u, lag_v, ramps = delayed_slew(self.params.pendulum, sig.dt_s, u, self._tau_s,
-                                           delay.delay_s)
-            inject = self._kv * ramps[:, 0], self._kv * ramps[:, 1]
+            u, lag_v, (theta, omega) = delayed_slew(
+                self.params.pendulum, sig.dt_s, u, self._tau_s, delay.delay_s,
+                (self._ramp_theta, self._ramp_omega))
+            inject = self._kv * theta, self._kv * omega
         phi_end = self._kv * (u - self._ref)  # where the piezo is at each step's end
         phi_u = phi_end - self._kv * lag_v  # its mean over the step
         phi = phi_end + self.nominal_tilt

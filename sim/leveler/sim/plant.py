@@ -125,7 +125,8 @@ class Plant:
             ends, lags, ramps = delayed_slew(self.params.pendulum, self.dt_s,
                                              np.array(self._recent[0]),
                                              np.array(self._recent[1]), self._delay_s)
-            v, self._lag_v, inject = float(ends[-1]), float(lags[-1]), ramps[-1]
+            v, self._lag_v = float(ends[-1]), float(lags[-1])
+            inject = (float(ramps[0][-1]), float(ramps[1][-1]))
         dphi = self._tilt_per_v * (v - self.v_effective)
         self.v_effective = v
         if self._resonances:
@@ -134,8 +135,8 @@ class Plant:
         pend = self.pendulum
         pend.step(self.tilt_rad())
         if inject is not None:
-            pend.theta += self._tilt_per_v * float(inject[0])
-            pend.omega += self._tilt_per_v * float(inject[1])
+            pend.theta += self._tilt_per_v * inject[0]
+            pend.omega += self._tilt_per_v * inject[1]
         elif tau != 0.0:  # a held voltage (an open loop's plateau) adds nothing
             g_theta = g_omega = 0.0
             for k_theta, k_omega in self._ramp_k:
