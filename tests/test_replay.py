@@ -290,6 +290,33 @@ def test_the_compiled_ramp_gain_is_numpys_to_the_bit(night: Path,
     assert np.ptp(compiled[:, 0]) > 0 and np.ptp(compiled[:, 1]) > 0
 
 
+@pytest.mark.skipif(importlib.util.find_spec("numba") is None, reason="numba not installed")
+@pytest.mark.parametrize("delay_s", [0.037, 0.0999, 0.237])
+def test_the_compiled_delayed_slew_is_numpys_to_the_bit(
+        night: Path, monkeypatch: pytest.MonkeyPatch, delay_s: float) -> None:
+    """`delayed_slew` compiled must be numpy's passes exactly: a night's commands with a
+    square's edges laid over them, so that ramps pass the steps' ends (a fraction of a
+    step late, and whole steps too)."""
+    from leveler import jit
+    from leveler.analysis.predict import slewed
+    from leveler.sim import pendulum
+
+    meas = load_measured(night)
+    dt, p = meas.dt_s, meas.config.plant
+    u = meas.u_v + 6.0 * np.sign(np.sin(2 * np.pi * meas.t_s / 64.0))
+    v = slewed(u, p.piezo.slew_v_per_s * dt)[0]
+    tau = np.minimum(np.abs(np.diff(v, prepend=v[:1])) / p.piezo.slew_v_per_s, dt)
+    compiled = pendulum.delayed_slew(p.pendulum, dt, v, tau, delay_s)
+    assert jit.compiled(pendulum._delayed_pass) is not None  # it ran compiled
+    monkeypatch.setattr(jit, "compiled", lambda fn: None)  # as without numba
+    plain = pendulum.delayed_slew(p.pendulum, dt, v, tau, delay_s)
+    for a, b in ((compiled[0], plain[0]), (compiled[1], plain[1]),
+                 (compiled[2][0], plain[2][0]), (compiled[2][1], plain[2][1])):
+        assert np.array_equal(a, b)
+        assert np.ptp(a) > 0
+    assert np.count_nonzero(tau > dt - delay_s % dt) > 100  # ramps passed steps' ends
+
+
 def test_a_predictor_set_up_from_memory_is_the_one_built_afresh(night: Path) -> None:
     """`Predictor` keeps the set-up its knobs do not touch (`predict._memo`); what it
     hands out for one set of numbers must be what a fresh build gives, whatever was

