@@ -171,7 +171,7 @@ def delayed_slew(p: PendulumParams, dt_s: float, v: np.ndarray, tau_s: np.ndarra
     Held at the mean of the two samples it straddles (as it was), a delay's change sat a
     fraction of a step early and its ramp ran from the step's start: fitted to an
     independent simulator's piezo, which switches within the step and then slews, delays
-    came out 1.28-1.53 times the truth under a square modulation and 0.86-1.0 times it in
+    came out 1.21-1.56 times the truth under a square modulation and 0.86-1.0 times it in
     a closed loop. The log starts settled: before it, the piezo held v[0]."""
     whole, late = divmod(max(delay_s, 0.0), dt_s)
     m, room = int(whole), dt_s - late
