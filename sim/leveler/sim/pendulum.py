@@ -230,19 +230,13 @@ def _delayed_pass(v: np.ndarray, tau: np.ndarray, theta: np.ndarray, omega: np.n
         if t > room:
             first = dv * (room / t)
             d = room
-            th = om = 0.0
-            for i in range(terms.shape[0] - 1, -1, -1):
-                th += terms[i, 0]
-                th *= room
-                om += terms[i, 1]
-                om *= room
             rest, rd = dv - first, t - room
-            rest_theta = rest_omega = 0.0
-            for i in range(terms.shape[0] - 1, -1, -1):
-                rest_theta += terms[i, 0]
-                rest_theta *= rd
-                rest_omega += terms[i, 1]
-                rest_omega *= rd
+            th = om = rest_theta = rest_omega = 0.0
+            for i in range(terms.shape[0] - 1, -1, -1):  # ramp_gain's Horner, both ramps
+                th = (th + terms[i, 0]) * room
+                om = (om + terms[i, 1]) * room
+                rest_theta = (rest_theta + terms[i, 0]) * rd
+                rest_omega = (rest_omega + terms[i, 1]) * rd
             rest_theta, rest_omega = rest * rest_theta, rest * rest_omega
             rest_lag = rest * (0.5 * rd) / dt
         j = k + m
