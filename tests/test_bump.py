@@ -86,3 +86,26 @@ def test_a_levels_deviance_is_whittles_ratio_summed_directly() -> None:
         direct = 2.0 * float(np.sum(np.log(s0 / s1) + p / s0 - p / s1)) / ENBW_BINS
         assert spectra._deviance(f0, q, rms) == pytest.approx(direct, rel=1e-9, abs=1e-9)
     assert spectra._deviance(f0, q, 2e-9) > 100  # a level the data hold gains
+
+
+def test_the_spread_gate_tells_a_mode_rung_by_noise_from_a_comb_of_lines() -> None:
+    """A broad bump raises the likelihood for a comb of harmonics too; only a mode rung by
+    noise lifts the typical bin of its band (`Spectra.spread` against diagnose's
+    MIN_SPREAD)."""
+    from leveler.analysis.diagnose import MIN_SPREAD
+
+    rng = np.random.default_rng(10)
+    n = 40_000
+    mode = 1.2e-9 * rng.standard_normal(n) + _mode_noise(rng, n + 2000, 1.9, 9.0, 3e-9)
+    t = np.arange(n) * DT_S
+    # a sawtooth of 4 s: harmonics 0.25 Hz apart, eight of them within 1.9 Hz / 9 either way
+    comb = 1.2e-9 * rng.standard_normal(n) + 2e-8 * (np.mod(t / 4.0, 1.0) - 0.5)
+    for x, lines in ((mode, False), (comb, True)):
+        spectra = Spectra(_blocks(x), x)
+        bump = spectra.fit(1.9, 1.5, 2.4, (2.0, 50.0))
+        share = spectra.spread(bump)
+        assert (share < MIN_SPREAD) == lines, (bump, share)
+        if lines:
+            assert share < 0.1
+        else:
+            assert share > 0.7
