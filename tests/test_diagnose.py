@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import pytest
 from figure_capture import legend_texts, saved_figures
-from threadpoolctl import threadpool_limits
+from threadpoolctl import threadpool_info, threadpool_limits
 
 from leveler.analysis.diagnose import diagnose, gap
 from leveler.analysis.predict import Predictor, load_measured
@@ -159,11 +159,30 @@ def test_hidden_effect_is_found_fast(name: str, tmp_path: Path) -> None:
     _run(name, FAST[name], tmp_path)
 
 
+def test_a_diagnosis_keeps_blas_to_one_thread_whatever_the_caller_set(tmp_path: Path) -> None:
+    """Its answer must not depend on --jobs or the machine's cores: BLAS threads round
+    sums differently, and a strong hysteresis log of the independent generator was named
+    at --jobs 1 and not at --jobs 2. Checked at every stage, and given back after."""
+    cfg, text = load_config(REPO / "config" / "sim.toml")
+    log = tmp_path / "quiet.mcap"
+    make_measured(log, cfg, text, None, duration_s=1200, seed=3)
+    meas = load_measured(log)
+    seen: list[int] = []
+
+    def blas_threads() -> int:
+        return max(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
+
+    with threadpool_limits(2):
+        diagnose(meas, max_effects=1, progress=lambda *_: seen.append(blas_threads()))
+        assert blas_threads() == 2
+    assert len(seen) > 3 and set(seen) == {1}
+
+
 @pytest.mark.slow  # 17 s; make test-slow
 def test_families_fitted_in_parallel_give_the_serial_result(tmp_path: Path) -> None:
     """Each round's families fitted in forked workers: the same candidates in the same
     order, with the same scores. (A BLAS with more threads rounds otherwise, and a fit
-    may end 1e-4 elsewhere: the serial run takes the workers' one thread. Even so, a
+    may end 1e-4 elsewhere: `diagnose` keeps to the workers' one thread. Even so, a
     weak fit's end moves by 3e-4 of its deviance: numpy's sums round with the alignment
     of their arrays in memory, which differs between processes. Its held-out score moves
     more than its training one: a sawtooth's by 2.5e-3 (1312.9 against 1309.5) and a
@@ -175,8 +194,7 @@ def test_families_fitted_in_parallel_give_the_serial_result(tmp_path: Path) -> N
     log = tmp_path / "periodic.mcap"
     make_measured(log, cfg, text, truth, duration_s=3600, seed=5)
     meas = load_measured(log)
-    with threadpool_limits(1):
-        one = diagnose(meas)
+    one = diagnose(meas)
     two = diagnose(meas, jobs=2)
     assert [f.effect.name for f in two.effects] == ["periodic_disturbance"]
     assert len(one.candidates) == len(two.candidates) > 8
@@ -333,3 +351,4 @@ def test_imported_modulated_loop_without_temperature(tmp_path: Path,
     found = _imported(tmp_path, ActuatorDelay(delay_s=0.5), capsys, **_SQUARE)
     assert [fx.name for fx in found] == ["actuator_delay"]
     assert found[0].delay_s == pytest.approx(0.5, rel=0.02)  # type: ignore[attr-defined]
+

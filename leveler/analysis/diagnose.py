@@ -43,6 +43,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize_scalar
 from scipy.signal import freqz
+from threadpoolctl import threadpool_limits
 
 from leveler.analysis.bandgate import BandChange, band_changes, bin_power, worse_band
 from leveler.analysis.bump import Bump, Spectra, mode_psd
@@ -422,7 +423,18 @@ def diagnose(meas: Measured, max_effects: int = 4,
     on null data (`leveler.analysis.nullcal`) where that is above its BIC penalty; every
     candidate must beat the penalty, on the training part and on the held-out part.
     `jobs`: processes the families of each round are fitted in. `progress` is told
-    (stage, done, total) as the minute-long search goes."""
+    (stage, done, total) as the minute-long search goes.
+
+    The answer does not depend on `jobs` or on the machine's cores: BLAS keeps to one
+    thread throughout, as in a round's family processes and the null calibration's runs.
+    With the parent's threads, sums came out a rounding apart, and a strong hysteresis
+    log's flat fit went elsewhere: named at --jobs 1, "none" at --jobs 2."""
+    with threadpool_limits(limits=1):
+        return _diagnose(meas, max_effects, thresholds, jobs, progress)
+
+
+def _diagnose(meas: Measured, max_effects: int, thresholds: dict[str, float] | None,
+              jobs: int, progress: Callable[[str, int, int], None] | None) -> Diagnosis:
     def stage(name: str, done: int = 0, total: int = 1) -> None:
         if progress is not None:
             progress(name, done, total)
