@@ -352,3 +352,30 @@ def test_imported_modulated_loop_without_temperature(tmp_path: Path,
     assert [fx.name for fx in found] == ["actuator_delay"]
     assert found[0].delay_s == pytest.approx(0.5, rel=0.02)  # type: ignore[attr-defined]
 
+
+def test_nothing_named_says_which_candidate_held_out_and_what_stopped_it() -> None:
+    """"No candidate improved the held-out part" is wrong when one did and a later check
+    (its fit on the held-out part alone) stopped it: the physicist is told which, why,
+    and what residual is left."""
+    from leveler.analysis.diagnose import Candidate, Diagnosis
+    from leveler.cli.diagnose import summary
+    from leveler.sim.effects import EffectsParams
+
+    play = {"model": "prandtl_ishlinskii", "width_v": 0.1, "fraction": 0.09,
+            "width2_v": 0.0, "weight2": 0.0}
+    held = Candidate("actuator_hysteresis", play, 359.0, 145.0, 21.0, size_ok=True,
+                     note="held-out part disagrees: size -1")
+    small = Candidate("sensor_drift", {"rate_m_per_s": 1e-12}, 12.0, 30.0, 10.0,
+                      size_ok=False, note="changes the reading by only 0.1 nm rms")
+    quiet = Candidate("sensor_drift", {"rate_m_per_s": 1e-12}, 1.0, 3.0, 10.0,
+                      size_ok=True, note="not found in the training part")
+    d = Diagnosis([], EffectsParams(), {"rms_m": 118e-9}, {"rms_m": 66.3e-9},
+                  [held, small, quiet])
+    text = summary(d, None)
+    assert ("no missing effect found: 1 candidate(s) improved the held-out part beyond "
+            "their thresholds, but none held up") in text
+    assert "actuator hysteresis" in text and "held-out evidence 145, threshold 21" in text
+    assert "held-out part disagrees: size -1" in text
+    assert "residual RMS is 66.3 nm (118 nm before the recalibration)" in text
+    d.candidates = [small, quiet]
+    assert "no candidate improved the held-out part" in summary(d, None)

@@ -196,8 +196,7 @@ def summary(d: Diagnosis, model_out: str | None, cal: NullCalibration | None = N
     elif not d.effects and not d.candidates:
         lines.append("no effect was searched for; the model is left as it is.")
     elif not d.effects:
-        lines.append("no missing effect found: no candidate improved the held-out part of "
-                     "the log beyond its threshold; the model is left as it is.")
+        lines.append(_none_found(d))
     if d.candidates:
         lines.append(thresholds_line(cal))
     if d.leftover is not None:
@@ -223,6 +222,26 @@ def summary(d: Diagnosis, model_out: str | None, cal: NullCalibration | None = N
     if model_out:
         lines.append(f"model updated: {model_out}")
     return "\n".join(lines)
+
+
+def _none_found(d: Diagnosis) -> str:
+    """Why nothing was named: no candidate beat its threshold held out, or some did and
+    a later check stopped each (the best one's reason given: a fit on the held-out part
+    alone that disagrees is not "nothing improved the log")."""
+    last = max(c.round for c in d.candidates)
+    beat = [c for c in d.candidates
+            if c.round == last and c.size_ok and c.deviance_test > c.threshold]
+    if not beat:
+        return ("no missing effect found: no candidate improved the held-out part of the "
+                "log beyond its threshold; the model is left as it is.")
+    best = max(beat, key=lambda c: c.score)
+    why = best.note or "not confirmed"
+    return (f"no missing effect found: {len(beat)} candidate(s) improved the held-out part "
+            f"beyond their thresholds, but none held up; the best, {_title(best)} "
+            f"(held-out evidence {best.deviance_test:.4g}, threshold {best.threshold:.3g}): "
+            f"{why}. The model is left as it is; the residual RMS is "
+            f"{d.gap_after['rms_m'] * 1e9:.3g} nm ({d.gap_before['rms_m'] * 1e9:.3g} nm "
+            "before the recalibration).")
 
 
 def _title(c: Candidate) -> str:
