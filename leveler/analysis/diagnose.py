@@ -425,10 +425,12 @@ def diagnose(meas: Measured, max_effects: int = 4,
     `jobs`: processes the families of each round are fitted in. `progress` is told
     (stage, done, total) as the minute-long search goes.
 
-    The answer does not depend on `jobs` or on the machine's cores: BLAS keeps to one
-    thread throughout, as in a round's family processes and the null calibration's runs.
-    With the parent's threads, sums came out a rounding apart, and a strong hysteresis
-    log's flat fit went elsewhere: named at --jobs 1, "none" at --jobs 2."""
+    BLAS keeps to one thread throughout, as in a round's family processes and the null
+    calibration's runs, so its rounding depends neither on `jobs` nor on the machine's
+    cores. With the parent's threads, a strong hysteresis log's flat fit went elsewhere:
+    named at --jobs 1, "none" at --jobs 2 (now "none" at both). numpy's own sums still
+    round with their arrays' alignment in memory, which differs between processes: a
+    weak fit's end can move by 3e-4 of its deviance (`tests/test_diagnose.py`)."""
     with threadpool_limits(limits=1):
         return _diagnose(meas, max_effects, thresholds, jobs, progress)
 
