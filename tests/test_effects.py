@@ -257,3 +257,12 @@ def test_each_play_is_the_sample_by_sample_play_to_the_bit(n: int, impl: Any) ->
             out[i] = y
         assert np.array_equal(fn(u, width), out), width
         assert np.array_equal(play(u, width), out), width
+
+
+def test_a_delay_asked_to_act_on_the_voltage_alone_says_where_it_is_stepped() -> None:
+    """A delay is an actuator effect that is no stage on the voltage: the inherited
+    "is not an actuator or sensor effect" would mislead whoever calls it so."""
+    sig = Signals(np.arange(4) * 0.1, 0.1, None)
+    for call in (lambda fx: fx.apply(np.zeros(4), sig), lambda fx: fx.stepper(0.1)):
+        with pytest.raises(TypeError, match="delayed_slew"):
+            call(ActuatorDelay(delay_s=0.05))

@@ -466,6 +466,11 @@ class TemperatureCoupling(Effect):
 MIN_DELAY_SAMPLES = 0.1
 
 
+_NOT_ON_THE_VOLTAGE = ("an actuator delay is no stage on the voltage: it moves the piezo's "
+                       "slewing ramps, which the pendulum follows, so the plant and replay "
+                       "step it with the pendulum (leveler.sim.pendulum.delayed_slew)")
+
+
 @dataclass(frozen=True, slots=True)
 class ActuatorDelay(Effect):
     """A transport delay between the logged command and the piezo moving (amplifier, bus).
@@ -489,6 +494,12 @@ class ActuatorDelay(Effect):
 
     def bounds(self, key: str) -> tuple[float, float]:
         return (0.0, 30.0)
+
+    def apply(self, x: np.ndarray, sig: Signals) -> np.ndarray:
+        raise TypeError(_NOT_ON_THE_VOLTAGE)
+
+    def stepper(self, dt_s: float) -> Callable[[float, float], float]:
+        raise TypeError(_NOT_ON_THE_VOLTAGE)
 
     def degenerate(self, ev: Evidence) -> str:
         """A delay under a tenth of a sample is how the DAQ times its read and write within
