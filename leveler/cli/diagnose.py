@@ -236,8 +236,11 @@ def _none_found(d: Diagnosis) -> str:
                 "log beyond its threshold; the model is left as it is.")
     best = max(beat, key=lambda c: c.score)
     why = best.note or "not confirmed"
-    return (f"no missing effect found: {len(beat)} candidate(s) improved the held-out part "
-            f"beyond their thresholds, but none held up; the best, {_title(best)} "
+    some = (f"{len(beat)} candidates improved the held-out part beyond their thresholds, "
+            "but none held up; the best," if len(beat) > 1 else
+            "1 candidate improved the held-out part beyond its threshold, but did not hold "
+            "up:")
+    return (f"no missing effect found: {some} {_title(best)} "
             f"(held-out evidence {best.deviance_test:.4g}, threshold {best.threshold:.3g}): "
             f"{why}. The model is left as it is; the residual RMS is "
             f"{d.gap_after['rms_m'] * 1e9:.3g} nm ({d.gap_before['rms_m'] * 1e9:.3g} nm "
