@@ -35,6 +35,7 @@ _PACE_EVERY = 20_000  # cycles between waits for a log writer, and its allowed b
 # is not worth it for less than about a minute of 1 kHz loop.
 KERNEL_MIN_CYCLES = 50_000
 KERNELS = ("auto", "numba", "python", "off")
+_NONE = np.zeros(0)  # the kernel's per-cycle drives, unused: the loop decides every command
 
 
 class Recorder:
@@ -209,23 +210,17 @@ class _Kernel:
             return "not the plain simulated stand (another driver, or a wrapped actuator)"
         if sim._faults or math.isfinite(sim._hang_at_s) or math.isfinite(sim._fail_at_s):
             return "fault injection"
-        plant = sim.plant
-        if plant.samples_per_cycle != 1:
-            return "oversampling ADC"
-        if plant._actuator_fx or plant._sensor_fx or plant._resonances:
-            return "an actuator, sensor or resonance effect"
-        if plant.dt_s != vs.dt_s:
+        if why := kn.unsupported(sim.plant, vs.loop.pid):
+            return why
+        if sim.plant.dt_s != vs.dt_s:
             return "plant and loop steps differ"
-        if vs.loop.pid.config.notch is not None:
-            return "a notch on the reading"
-        if vs.loop.pid.config.gains.ki2:
-            return "a double integral"
         if vs.loop.thermometer is not None:
             return "a thermometer (read for the temperature feedforward)"
         return ""
 
-    # The state's names here are the objects' own, private ones: this class is the one place
-    # that maps them to the kernel's arrays, and tests hold the two runs to each other.
+    # The loop's state's names here are its own, private ones: this class is the one place
+    # that maps them to the kernel's arrays (the plant's and PID's: `leveler.loop.kernel`),
+    # and tests hold the two runs to each other.
 
     def _ready(self) -> bool:
         """Whether the loop is in a state the kernel knows (else the objects run a cycle)."""
@@ -247,7 +242,7 @@ class _Kernel:
                 continue
             self._export()
             m, why = self.fn(self.s, self.c, self._constants(), *self._block_arrays(),
-                             self.res, self.out, self.out_i, n - done)
+                             self.res, _NONE, _NONE, self.out, self.out_i, n - done)
             self._import(m)
             done += m
             self.cycles += m
@@ -268,65 +263,25 @@ class _Kernel:
         return self._arrays
 
     def _constants(self) -> np.ndarray:
-        vs, loop, plant = self.vs, self.vs.loop, self.sim.plant
-        pend, pid, pol = plant.pendulum, loop.pid, loop.policy
-        k = np.zeros(kn.N_CONST + 2 * len(plant._ramp_k))
-        for i, v in ((kn.K_TILT_PER_V, plant._tilt_per_v), (kn.K_V_REF, plant._v_ref),
-                     (kn.K_V_MIN, plant._v_min), (kn.K_V_MAX, plant._v_max),
-                     (kn.K_MAX_DV, plant._max_dv), (kn.K_ARM, plant._arm),
-                     (kn.K_GAIN, plant._gain), (kn.K_OFFSET, plant._offset),
-                     (kn.K_ADC_MIN, plant._adc_min), (kn.K_LSB, plant._lsb),
-                     (kn.K_TOP, plant._top), (kn.K_LINEAR, pend._linear),
-                     (kn.K_A11, pend._a11), (kn.K_A12, pend._a12), (kn.K_A21, pend._a21),
-                     (kn.K_A22, pend._a22), (kn.K_B1, pend._b1), (kn.K_B2, pend._b2),
-                     (kn.K_C_PER_J, pend._c_per_j), (kn.K_J, pend._j), (kn.K_C, pend._c),
-                     (kn.K_K, pend._k), (kn.K_MGL, pend._mgl), (kn.K_SUBSTEPS, pend._substeps),
-                     (kn.K_PLANT_DT, plant.dt_s), (kn.K_OFFSET_TILT, plant._offset_tilt),
-                     (kn.K_KP, pid._kp), (kn.K_KI, pid._ki), (kn.K_KD, pid._kd),
-                     (kn.K_LO, pid._lo), (kn.K_HI, pid._hi), (kn.K_SLEW, pid._slew),
-                     (kn.K_TAU, pid._tau), (kn.K_RAMP, pid._ramp), (kn.K_TARGET, pid._target),
-                     (kn.K_TT, pid._tt), (kn.K_DT, loop.dt_s), (kn.K_PERIOD, vs.clock.period_s),
-                     (kn.K_STUCK_AFTER, pol.stuck_after_samples),
-                     (kn.K_MAX_STEP_M, pol.max_step_m), (kn.K_SPIKE_MAX, pol.spike_reject_max)):
-            k[i] = v
-        k[kn.K_SLEW_V_PER_S] = plant._slew_v_per_s
-        k[kn.K_RAMP_TERMS:] = np.ravel(plant._ramp_k)
-        return k
+        vs, loop = self.vs, self.vs.loop
+        pol = loop.policy
+        return kn.constants(self.sim.plant, loop.pid, loop.dt_s, vs.clock.period_s,
+                            pol.stuck_after_samples, pol.max_step_m, pol.spike_reject_max)
 
     def _export(self) -> None:
-        vs, plant = self.vs, self.sim.plant
-        pend, pid, loop = plant.pendulum, vs.loop.pid, vs.loop
-        self.s[:] = (plant.v_applied, plant.v_target, plant.v_effective, plant._lag_v,
-                     pend.theta, pend.omega, pend._phi, pid._sp, pid._out, pid._u, pid._i,
-                     pid._err, pid._df, math.nan if pid._prev is None else pid._prev,
-                     pid._r, pid._res_wait_s, loop.held_v, loop._last_value_m,
-                     loop._last_good_m)
-        res = pid._res
-        if res is None:
-            self.res = np.zeros((kn.N_RES, 0))
-        else:
-            rot_c, rot_s = res.rotation(loop.dt_s)
-            self.res = np.array([rot_c, rot_s, res._cos_out, res._sin_out, res._re, res._im],
-                                dtype=float).reshape(kn.N_RES, -1)
-        self.c[:] = (plant.n, plant._i, loop.seq, vs.clock._n, loop._same_in_a_row,
-                     loop._spikes_in_a_row, loop.state == ENGAGED)
+        vs, loop = self.vs, self.vs.loop
+        self.res = kn.export_state(self.sim.plant, loop.pid, loop.dt_s, self.s, self.c)
+        self.s[kn.HELD_V:] = (loop.held_v, loop._last_value_m, loop._last_good_m)
+        self.c[kn.SEQ:] = (loop.seq, vs.clock._n, loop._same_in_a_row,
+                           loop._spikes_in_a_row, loop.state == ENGAGED)
 
     def _import(self, m: int) -> None:
-        vs, plant = self.vs, self.sim.plant
-        pend, pid, loop = plant.pendulum, vs.loop.pid, vs.loop
-        s = self.s.tolist()
-        c = self.c.tolist()
-        (plant.v_applied, plant.v_target, plant.v_effective, plant._lag_v, pend.theta,
-         pend.omega, pend._phi) = s[kn.V_APPLIED:kn.SP]
-        if loop.state == ENGAGED:
-            (pid._sp, pid._out, pid._u, pid._i, pid._err, pid._df, pid._prev, pid._r,
-             pid._res_wait_s) = s[kn.SP:kn.HELD_V]
-            if pid._res is not None:
-                pid._res._re = self.res[kn.RES_RE].tolist()
-                pid._res._im = self.res[kn.RES_IM].tolist()
-        loop.held_v, loop._last_value_m, loop._last_good_m = s[kn.HELD_V:]
-        plant.n, plant._i, loop.seq, vs.clock._n = c[kn.N], c[kn.BLOCK_I], c[kn.SEQ], c[kn.TICK]
-        loop._same_in_a_row, loop._spikes_in_a_row = c[kn.SAME], c[kn.SPIKES]
+        vs, loop = self.vs, self.vs.loop
+        kn.import_state(self.sim.plant, loop.pid, self.s, self.c, self.res,
+                        loop.state == ENGAGED)
+        loop.held_v, loop._last_value_m, loop._last_good_m = self.s[kn.HELD_V:].tolist()
+        loop.seq, vs.clock._n = int(self.c[kn.SEQ]), int(self.c[kn.TICK])
+        loop._same_in_a_row, loop._spikes_in_a_row = int(self.c[kn.SAME]), int(self.c[kn.SPIKES])
         vs.t_s = vs.clock._n * vs.clock.period_s
         if m:
             self._emit(m)

@@ -19,7 +19,8 @@ from leveler.log.writer import Columns, LogWriter, encode
 from leveler.loop.pid import PIDGains
 from leveler.records import Sample, Truth
 from leveler.settings import Config, load_config
-from leveler.virtual import VirtualStand
+from leveler.sim.effects import ActuatorDelay
+from leveler.virtual import VirtualStand, _Kernel
 
 REPO = Path(__file__).resolve().parents[1]
 MODES = ["python", pytest.param("numba", marks=pytest.mark.skipif(
@@ -118,6 +119,20 @@ def test_kernel_matches_the_objects_bit_for_bit(case: str, mode: str) -> None:
         assert kernel_cycles < 0.99 * cycles
         assert {"railed", "spike", "stuck"} <= {e[2].split()[2] for e in _events(ref)
                                                  if e[2].startswith("sensor reading")}
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_a_delayed_piezo_is_left_to_the_objects(mode: str) -> None:
+    """The kernel steps no delay (`leveler.sim.pendulum.delayed_slew` is the plant's):
+    given a stand with one, it had run the day without it."""
+    cfg = _cfg()
+    cfg = dataclasses.replace(cfg, plant=dataclasses.replace(
+        cfg.plant, effects=cfg.plant.effects.with_effect(ActuatorDelay(delay_s=0.03))))
+    ref, _ = _run(cfg, 12_000, "off")
+    got, kernel_cycles = _run(cfg, 12_000, mode)
+    assert np.array_equal(ref.recorded().sensor_m, got.recorded().sensor_m)
+    assert kernel_cycles == 0
+    assert "actuator" in _Kernel.unsupported(got)
 
 
 def _messages(path: Path) -> list[tuple[str, int, int, bytes]]:

@@ -3,6 +3,7 @@ log's own schedule, and the CLI's calibration and cache."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -14,6 +15,7 @@ from leveler.analysis import nullcal, predict
 from leveler.analysis.predict import excitation_v, load_measured
 from leveler.analysis.synthetic import make_measured
 from leveler.cli.main import main
+from leveler.loop import kernel as kn
 from leveler.settings import load_config
 
 REPO = Path(__file__).resolve().parents[1]
@@ -72,6 +74,62 @@ def test_a_null_run_follows_the_logs_schedule_and_modulation(modulated_log: Path
     assert a.sig.temperature_k is not None and noise_k > 0
     scatter_k = float(np.std(np.diff(a.sig.temperature_k))) / math.sqrt(2)
     assert scatter_k == pytest.approx(noise_k, rel=0.2)
+
+
+KERNELS = ["python", pytest.param("auto", marks=pytest.mark.skipif(
+    kn.compiled() is None, reason="numba not installed"))]
+
+
+@pytest.mark.parametrize("kernel", KERNELS)
+@pytest.mark.parametrize("schedule", ["closed, dithered", "open third, then closed",
+                                      "open, no controller", "oversampled"])
+def test_the_kernel_simulates_a_null_log_as_the_objects_do(
+        modulated_log: Path, schedule: str, kernel: str, monkeypatch: pytest.MonkeyPatch
+        ) -> None:
+    """The uneventful samples in `leveler.loop.kernel` (compiled or interpreted), the rest
+    by the objects: the same null log to the bit as the objects' alone, on each schedule
+    a log has (an open modulated third, then the loop closed with its excitation; no
+    controller at all), across the disturbances' blocks; the kernel ran most of it
+    where it can, none of it where it cannot (an oversampling ADC)."""
+    meas = load_measured(modulated_log)
+    n = len(meas.y_m)
+    if schedule == "open third, then closed":
+        assert meas.engaged is not None
+        meas = dataclasses.replace(meas, engaged=np.arange(n) >= n // 3)
+    elif schedule == "open, no controller":
+        meas = dataclasses.replace(meas, controller=None)
+    elif schedule == "oversampled":
+        plant = meas.config.plant
+        meas = dataclasses.replace(meas, config=dataclasses.replace(
+            meas.config, plant=dataclasses.replace(plant, sensor=dataclasses.replace(
+                plant.sensor, samples_per_cycle=4))))
+    ran: list[int] = []
+    fn = kn.compiled() if kernel == "auto" else kn.cycles
+
+    def counted(*args: object) -> tuple[int, int]:
+        out = fn(*args)
+        ran.append(out[0])
+        return out
+
+    if kernel == "auto":
+        monkeypatch.setattr(kn, "compiled", lambda: counted)
+    else:
+        monkeypatch.setattr(kn, "cycles", counted)
+    ref = nullcal.simulate_null(meas, 4, kernel="off")
+    assert not ran
+    got = nullcal.simulate_null(meas, 4, kernel=kernel)
+    assert np.array_equal(got.y_m, ref.y_m)
+    assert np.array_equal(got.u_v, ref.u_v)
+    assert got.sig.temperature_k is not None
+    assert np.array_equal(got.sig.temperature_k, ref.sig.temperature_k)
+    if schedule == "oversampled":
+        assert not ran
+    else:
+        assert sum(ran) > 0.9 * n
+    if schedule == "open, no controller":  # the logged voltage, slewed, is what drove it
+        assert np.max(np.abs(got.u_v - meas.u_v)) < 1e-9
+    with pytest.raises(ValueError, match="kernel must be"):
+        nullcal.simulate_null(meas, 4, kernel="fast")
 
 
 def test_forked_workers_calibrate_as_one_process_does(modulated_log: Path,

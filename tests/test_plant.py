@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 
@@ -238,6 +239,28 @@ def test_same_seed_same_realization_other_seed_differs() -> None:
 
     assert trace(5) == trace(5)
     assert trace(5) != trace(6)
+
+
+@pytest.mark.parametrize("resolution_k", [0.0, 1e-3])
+def test_a_thermometer_series_reads_as_its_readings_one_by_one(resolution_k: float) -> None:
+    """A null log's thermometer read at once: the same draws, the same rounding, across
+    the blocks its noise is drawn in, after readings one at a time have begun a block."""
+    params = PlantParams()
+    params = dataclasses.replace(params, thermal=dataclasses.replace(
+        params.thermal, thermometer_resolution_k=resolution_k))
+    one, many = Plant(params, 0.1, 8), Plant(params, 0.1, 8)
+    plate, by_one = [], []
+    for i in range(10_000):
+        if i < 100:  # both read the first 100 one at a time
+            assert one.thermometer_k() == many.thermometer_k()
+            many.step()
+        else:
+            plate.append(one.plate_temperature_k())
+            by_one.append(one.thermometer_k())
+        one.step()
+    got = many.thermometer_series_k(np.array(plate))
+    assert np.array_equal(got, by_one)
+    assert np.std(np.diff(by_one)) > 0  # noise, not a constant
 
 
 def test_a_slewing_piezo_lags_by_its_ramps_mean_and_the_pendulum_follows_the_ramp() -> None:

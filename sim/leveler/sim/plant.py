@@ -188,16 +188,41 @@ class Plant:
         value_m = (counts * self._lsb + self._adc_min - self._offset) / self._gain
         return counts, value_m, railed
 
+    def plate_temperature_k(self) -> float:
+        """The plate's true temperature now [K] (what `thermometer_k` reads)."""
+        return float(self._block.temperature_k[self._i])
+
     def thermometer_k(self) -> float:
         """What the plate thermometer reads now [K]: the plate temperature, its noise, its
         resolution."""
         th = self.params.thermal
         if not self._thermometer_z:  # drawn a block at a time: the same stream, 4x cheaper
-            self._thermometer_z = self._rng_thermometer.standard_normal(4096).tolist()[::-1]
+            self._refill_thermometer()
         temp = (self._block.temperature_k[self._i]
                 + th.thermometer_noise_k * self._thermometer_z.pop())
         res = th.thermometer_resolution_k
         return round(temp / res) * res if res > 0 else temp
+
+    def thermometer_series_k(self, plate_k: np.ndarray) -> np.ndarray:
+        """What `thermometer_k` would have read, called once at each of these plate
+        temperatures in turn [K], the same draws to the bit: a simulated log's series
+        at once, its plate temperatures recorded as it ran."""
+        th = self.params.thermal
+        z = np.empty(len(plate_k))
+        k = 0
+        while k < len(z):
+            if not self._thermometer_z:
+                self._refill_thermometer()
+            take = min(len(z) - k, len(self._thermometer_z))
+            z[k:k + take] = self._thermometer_z[:-take - 1:-1]  # the next, in draw order
+            del self._thermometer_z[-take:]
+            k += take
+        temp = plate_k + th.thermometer_noise_k * z
+        res = th.thermometer_resolution_k
+        return np.round(temp / res) * res if res > 0 else temp
+
+    def _refill_thermometer(self) -> None:
+        self._thermometer_z = self._rng_thermometer.standard_normal(4096).tolist()[::-1]
 
     def truth(self, seq: int, t_s: float) -> Truth:
         b, i = self._block, self._i
