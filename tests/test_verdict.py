@@ -17,6 +17,7 @@ from leveler.sim.effects import (
     ActuatorDelay,
     ExtraResonance,
     PeriodicDisturbance,
+    SensorDrift,
     TemperatureCoupling,
 )
 
@@ -82,6 +83,30 @@ def test_what_a_replay_predicts_wins_a_tie_with_a_mode_rung_by_noise() -> None:
     # a mode well ahead of the prediction is still the mode
     far = [_passed("extra_resonance", mode, 1e5), _passed("actuator_delay", DELAY, 9.0e4)]
     assert [c.name for _, c, _ in _select(far, _agrees)] == ["extra_resonance"]
+
+
+def test_a_fit_whose_size_its_uncertainty_cannot_tell_from_zero_loses_a_tie() -> None:
+    """A coupling through lags longer than half the log bends the temperature into a
+    ramp, and its size then slides along a ridge with its lags: a strong curved drift
+    (independent generator) tied with a coupling of 2.6 +- 14.6 urad/K (held out 1,808
+    and 1,797). A drift told to within 1 % wins; both told, or neither, stay ambiguous."""
+    drift = SensorDrift(rate_m_per_s=3.5e-11)
+    slow = TemperatureCoupling(tilt_per_kelvin_rad_per_k=2.6e-6, lag_s=17_400.0,
+                               lag2_s=3_860.0)
+
+    def tie(coupling_sigma: float, drift_sigma: float) -> list[str]:
+        pair = [(Fit(slow, {"tilt_per_kelvin_rad_per_k": coupling_sigma}, 0.0),
+                 Candidate("temperature_coupling", {}, 1808.0, 1808.0, 10.0)),
+                (Fit(drift, {"rate_m_per_s": drift_sigma}, 0.0),
+                 Candidate("sensor_drift", {}, 1797.0, 1797.0, 10.0))]
+        return [c.name for _, c, _ in _select(pair, _agrees)]
+
+    assert tie(1.46e-5, 3.9e-13) == ["sensor_drift"]
+    assert tie(1.0e-6, 3.9e-13) == ["temperature_coupling", "sensor_drift"]  # 2.6 sigma
+    assert tie(1.46e-5, 1e-10) == ["temperature_coupling", "sensor_drift"]
+    # and a fit that gives no uncertainty for its size is taken at its word
+    assert len(_select([_passed("temperature_coupling", slow, 1808.0),
+                        _passed("sensor_drift", drift, 1797.0)], _agrees)) == 2
 
 
 @pytest.fixture(scope="module")

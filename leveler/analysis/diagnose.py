@@ -1020,7 +1020,26 @@ def _select(passed: list[tuple[Fit, Candidate]], held_out: Callable[[Fit], Fit]
         # What a replay predicts sample by sample is no noise, and its misprediction is a
         # bump of power too: a strong 44 ms delay tied with a 1.14 Hz mode rung by noise.
         return [s for s, n in zip(stable, noisy, strict=True) if not n]
+    told = [_size_told(f) for f, _, _ in stable]
+    if len(stable) == 2 and told[0] != told[1]:
+        # A fit whose own uncertainty cannot tell its size from nothing holds the other's
+        # shape by a ridge of its parameters, not as itself: a strong curved drift (32
+        # pm/s) tied with a coupling of 2.6 +- 14.6 urad/K through lags of 17,400 s and
+        # 3,860 s, which together only make a slow bend of the temperature.
+        return [s for s, t in zip(stable, told, strict=True) if t]
     return stable
+
+
+#: a fit's size within this many of its own 1-sigma of zero is not told by the log
+SIZE_TOLD_Z = 2.0
+
+
+def _size_told(f: Fit) -> bool:
+    """Does the fit's uncertainty tell its size from zero (SIZE_TOLD_Z)? A fit that
+    gives no uncertainty for it (a bump's) is taken at its word."""
+    fx = f.effect
+    sigma = f.sigma.get(fx.magnitude)
+    return sigma is None or abs(float(getattr(fx, fx.magnitude))) > SIZE_TOLD_Z * sigma
 
 
 def _noise_rung(fx: Effect) -> bool:
