@@ -166,7 +166,7 @@ class _NullLoop:
         self.u[i] = plant.command(v)
 
     def run(self, fn: Callable[..., tuple[int, int]] | None) -> None:
-        """Every sample: by `fn` (`leveler.kernel.cycles`, compiled or not) where it can,
+        """Every sample: by `fn` (`leveler.loop.kernel.cycles`, compiled or not) where it can,
         else (or with None) by the objects."""
         n, plant, pid = len(self.y), self.plant, self.pid
         if fn is None or kn.unsupported(plant, pid):
