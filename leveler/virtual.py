@@ -28,6 +28,7 @@ from leveler.loop.cycle import ENGAGED, IDLE, Loop, Sink
 from leveler.loop.pid import PID
 from leveler.records import Environment, Event, Sample, Truth
 from leveler.settings import Config
+from leveler.sim.plant import Plant
 from leveler.stand import open_stand
 
 _PACE_EVERY = 20_000  # cycles between waits for a log writer, and its allowed backlog
@@ -180,6 +181,96 @@ class VirtualStand:
                                                          r.tilt_rad)), r.events)
 
 
+# The plant's and PID's private state, mapped to `leveler.loop.kernel`'s arrays here and
+# only here (the loop's by `_Kernel`; a null log's schedule by `leveler.analysis.nullcal`):
+# tests hold the kernel's runs to the objects'.
+
+def kernel_unsupported(plant: Plant, pid: PID | None) -> str:
+    """Why `kernel.cycles` cannot step this plant and PID ('' when it can): it knows one
+    conversion a cycle, no effect stepped sample by sample (an actuator's, a delay, a
+    sensor's, a resonance) and a PID without a notch or a double integral."""
+    if plant.samples_per_cycle != 1:
+        return "oversampling ADC"
+    if plant._actuator_fx or plant._delay_s > 0 or plant._sensor_fx or plant._resonances:
+        return "an actuator, sensor or resonance effect"
+    if pid is not None and pid.config.notch is not None:
+        return "a notch on the reading"
+    if pid is not None and pid.config.gains.ki2:
+        return "a double integral"
+    return ""
+
+
+def kernel_constants(plant: Plant, pid: PID | None, dt_s: float, period_s: float,
+                     stuck_after: int = 0, max_step_m: float = 0.0, spike_max: int = 0
+                     ) -> np.ndarray:
+    """The constants of `plant` and `pid` stepped every `dt_s` on a clock of `period_s`,
+    with the loop's screen (0: a screen that passes every reading). Without a PID (an
+    open loop alone) its terms are 0."""
+    pend = plant.pendulum
+    k = np.zeros(kn.N_CONST + 2 * len(plant._ramp_k))
+    if pid is not None:
+        for i, v in ((kn.K_KP, pid._kp), (kn.K_KI, pid._ki), (kn.K_KD, pid._kd),
+                     (kn.K_LO, pid._lo), (kn.K_HI, pid._hi), (kn.K_SLEW, pid._slew),
+                     (kn.K_TAU, pid._tau), (kn.K_RAMP, pid._ramp),
+                     (kn.K_TARGET, pid._target), (kn.K_TT, pid._tt)):
+            k[i] = v
+    for i, v in ((kn.K_TILT_PER_V, plant._tilt_per_v), (kn.K_V_REF, plant._v_ref),
+                 (kn.K_V_MIN, plant._v_min), (kn.K_V_MAX, plant._v_max),
+                 (kn.K_MAX_DV, plant._max_dv), (kn.K_ARM, plant._arm),
+                 (kn.K_GAIN, plant._gain), (kn.K_OFFSET, plant._offset),
+                 (kn.K_ADC_MIN, plant._adc_min), (kn.K_LSB, plant._lsb),
+                 (kn.K_TOP, plant._top), (kn.K_LINEAR, pend._linear),
+                 (kn.K_A11, pend._a11), (kn.K_A12, pend._a12), (kn.K_A21, pend._a21),
+                 (kn.K_A22, pend._a22), (kn.K_B1, pend._b1), (kn.K_B2, pend._b2),
+                 (kn.K_C_PER_J, pend._c_per_j), (kn.K_J, pend._j), (kn.K_C, pend._c),
+                 (kn.K_K, pend._k), (kn.K_MGL, pend._mgl), (kn.K_SUBSTEPS, pend._substeps),
+                 (kn.K_PLANT_DT, plant.dt_s), (kn.K_OFFSET_TILT, plant._offset_tilt),
+                 (kn.K_DT, dt_s), (kn.K_PERIOD, period_s),
+                 (kn.K_STUCK_AFTER, stuck_after), (kn.K_MAX_STEP_M, max_step_m),
+                 (kn.K_SPIKE_MAX, spike_max)):
+        k[i] = v
+    k[kn.K_SLEW_V_PER_S] = plant._slew_v_per_s
+    k[kn.K_RAMP_TERMS:] = np.ravel(plant._ramp_k)
+    return k
+
+
+def export_state(plant: Plant, pid: PID | None, dt_s: float, s: np.ndarray, c: np.ndarray
+                 ) -> np.ndarray:
+    """The plant's and PID's state into `s` (up to HELD_V) and `c` (N, BLOCK_I); returns
+    the resonant terms' array (`kernel.cycles`' `res`)."""
+    pend = plant.pendulum
+    s[:kn.SP] = (plant.v_applied, plant.v_target, plant.v_effective, plant._lag_v,
+                 pend.theta, pend.omega, pend._phi)
+    if pid is not None:
+        s[kn.SP:kn.HELD_V] = (pid._sp, pid._out, pid._u, pid._i, pid._err, pid._df,
+                              math.nan if pid._prev is None else pid._prev, pid._r,
+                              pid._res_wait_s)
+    c[kn.N], c[kn.BLOCK_I] = plant.n, plant._i
+    res = None if pid is None else pid._res
+    if res is None:
+        return np.zeros((kn.N_RES, 0))
+    rot_c, rot_s = res.rotation(dt_s)
+    return np.array([rot_c, rot_s, res._cos_out, res._sin_out, res._re, res._im],
+                    dtype=float).reshape(kn.N_RES, -1)
+
+
+def import_state(plant: Plant, pid: PID | None, s: np.ndarray, c: np.ndarray, res: np.ndarray,
+                 engaged: bool) -> None:
+    """`export_state` undone: the state the kernel left, back to the objects (the PID's
+    only if it was `engaged`: an idle kernel leaves it as it was)."""
+    pend = plant.pendulum
+    st = s.tolist()
+    (plant.v_applied, plant.v_target, plant.v_effective, plant._lag_v, pend.theta,
+     pend.omega, pend._phi) = st[kn.V_APPLIED:kn.SP]
+    if engaged and pid is not None:
+        (pid._sp, pid._out, pid._u, pid._i, pid._err, pid._df, pid._prev, pid._r,
+         pid._res_wait_s) = st[kn.SP:kn.HELD_V]
+        if pid._res is not None:
+            pid._res._re = res[kn.RES_RE].tolist()
+            pid._res._im = res[kn.RES_IM].tolist()
+    plant.n, plant._i = int(c[kn.N]), int(c[kn.BLOCK_I])
+
+
 class _Kernel:
     """`leveler.loop.kernel.cycles` run on a VirtualStand's objects: their state out to
     arrays, the uneventful cycles in the kernel, the state back, the records to the sinks;
@@ -210,7 +301,7 @@ class _Kernel:
             return "not the plain simulated stand (another driver, or a wrapped actuator)"
         if sim._faults or math.isfinite(sim._hang_at_s) or math.isfinite(sim._fail_at_s):
             return "fault injection"
-        if why := kn.unsupported(sim.plant, vs.loop.pid):
+        if why := kernel_unsupported(sim.plant, vs.loop.pid):
             return why
         if sim.plant.dt_s != vs.dt_s:
             return "plant and loop steps differ"
@@ -219,7 +310,7 @@ class _Kernel:
         return ""
 
     # The loop's state's names here are its own, private ones: this class is the one place
-    # that maps them to the kernel's arrays (the plant's and PID's: `leveler.loop.kernel`),
+    # that maps them to the kernel's arrays (the plant's and PID's: `export_state` above),
     # and tests hold the two runs to each other.
 
     def _ready(self) -> bool:
@@ -265,19 +356,19 @@ class _Kernel:
     def _constants(self) -> np.ndarray:
         vs, loop = self.vs, self.vs.loop
         pol = loop.policy
-        return kn.constants(self.sim.plant, loop.pid, loop.dt_s, vs.clock.period_s,
+        return kernel_constants(self.sim.plant, loop.pid, loop.dt_s, vs.clock.period_s,
                             pol.stuck_after_samples, pol.max_step_m, pol.spike_reject_max)
 
     def _export(self) -> None:
         vs, loop = self.vs, self.vs.loop
-        self.res = kn.export_state(self.sim.plant, loop.pid, loop.dt_s, self.s, self.c)
+        self.res = export_state(self.sim.plant, loop.pid, loop.dt_s, self.s, self.c)
         self.s[kn.HELD_V:] = (loop.held_v, loop._last_value_m, loop._last_good_m)
         self.c[kn.SEQ:] = (loop.seq, vs.clock._n, loop._same_in_a_row,
                            loop._spikes_in_a_row, loop.state == ENGAGED)
 
     def _import(self, m: int) -> None:
         vs, loop = self.vs, self.vs.loop
-        kn.import_state(self.sim.plant, loop.pid, self.s, self.c, self.res,
+        import_state(self.sim.plant, loop.pid, self.s, self.c, self.res,
                         loop.state == ENGAGED)
         loop.held_v, loop._last_value_m, loop._last_good_m = self.s[kn.HELD_V:].tolist()
         loop.seq, vs.clock._n = int(self.c[kn.SEQ]), int(self.c[kn.TICK])

@@ -50,6 +50,12 @@ from leveler.loop.pid import PID
 from leveler.sim.effects import Signals
 from leveler.sim.params import PlantParams
 from leveler.sim.plant import Plant
+from leveler.virtual import (
+    export_state,
+    import_state,
+    kernel_constants,
+    kernel_unsupported,
+)
 
 #: the false-alarm rate per null log the thresholds are set for
 ALPHA = 0.01
@@ -169,14 +175,14 @@ class _NullLoop:
         """Every sample: by `fn` (`leveler.loop.kernel.cycles`, compiled or not) where it can,
         else (or with None) by the objects."""
         n, plant, pid = len(self.y), self.plant, self.pid
-        if fn is None or kn.unsupported(plant, pid):
+        if fn is None or kernel_unsupported(plant, pid):
             for i in range(n):
                 self.sample(i)
             return
         s, c = np.zeros(kn.N_STATE), np.zeros(kn.N_COUNT, dtype=np.int64)
         out = np.zeros((kn.N_OUT, self.CHUNK))
         out_i = np.zeros((2, self.CHUNK), dtype=np.int64)
-        k = kn.constants(plant, pid, self.dt_s, plant.dt_s)
+        k = kernel_constants(plant, pid, self.dt_s, plant.dt_s)
         # where each sample's run of the same open or closed loop ends
         change = np.flatnonzero(np.diff(self._closed.astype(np.int8))) + 1
         ends = np.append(change, n)
@@ -189,7 +195,7 @@ class _NullLoop:
                 i += 1
                 continue
             limit = min(int(ends[np.searchsorted(ends, i, side="right")]) - i, self.CHUNK)
-            res = kn.export_state(plant, pid, self.dt_s, s, c)
+            res = export_state(plant, pid, self.dt_s, s, c)
             s[kn.HELD_V] = self._held
             c[kn.TICK], c[kn.ENGAGED] = plant.n, closed
             b = plant._block
@@ -198,7 +204,7 @@ class _NullLoop:
             m, why = fn(s, c, k, b.arrays["thermal_tilt_rad"], b.arrays["cooler_tilt_rad"],
                         b.arrays["effect_tilt_rad"], b.arrays["noise_m"], b.arrays["drift_m"],
                         b.arrays["temperature_k"], res, *drive, out, out_i, limit)
-            kn.import_state(plant, pid, s, c, res, closed)
+            import_state(plant, pid, s, c, res, closed)
             self._held = float(s[kn.HELD_V])
             self.y[i:i + m] = out[kn.SENSOR_M, :m]
             self.u[i:i + m] = out[kn.APPLIED_V, :m]

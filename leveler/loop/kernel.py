@@ -17,15 +17,10 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from leveler import jit
-
-if TYPE_CHECKING:
-    from leveler.loop.pid import PID
-    from leveler.sim.plant import Plant
 
 # The float state: plant, pendulum, PID, loop.
 (V_APPLIED, V_TARGET, V_EFFECTIVE, LAG_V, THETA, OMEGA, PHI, SP, OUTPUT, UNCLAMPED, INTEGRAL,
@@ -267,89 +262,6 @@ def cycles(s: np.ndarray, c: np.ndarray, k: np.ndarray, thermal: np.ndarray,
         c[SEQ] += 1
         done += 1
     return done, DONE
-
-
-# The objects' private state, mapped to the kernel's arrays here and only here (for the
-# plant and PID; a caller maps its loop's own): tests hold the two runs to each other.
-
-def unsupported(plant: Plant, pid: PID | None) -> str:
-    """Why `cycles` cannot step this plant and PID ('' when it can): it knows one
-    conversion a cycle, no effect stepped sample by sample (an actuator's, a delay, a
-    sensor's, a resonance) and a PID without a notch or a double integral."""
-    if plant.samples_per_cycle != 1:
-        return "oversampling ADC"
-    if plant._actuator_fx or plant._delay_s > 0 or plant._sensor_fx or plant._resonances:
-        return "an actuator, sensor or resonance effect"
-    if pid is not None and pid.config.notch is not None:
-        return "a notch on the reading"
-    if pid is not None and pid.config.gains.ki2:
-        return "a double integral"
-    return ""
-
-
-def constants(plant: Plant, pid: PID | None, dt_s: float, period_s: float, stuck_after: int = 0,
-              max_step_m: float = 0.0, spike_max: int = 0) -> np.ndarray:
-    """The constants of `plant` and `pid` stepped every `dt_s` on a clock of `period_s`,
-    with the loop's screen (0: a screen that passes every reading). Without a PID (an
-    open loop alone) its terms are 0."""
-    pend = plant.pendulum
-    k = np.zeros(N_CONST + 2 * len(plant._ramp_k))
-    if pid is not None:
-        for i, v in ((K_KP, pid._kp), (K_KI, pid._ki), (K_KD, pid._kd), (K_LO, pid._lo),
-                     (K_HI, pid._hi), (K_SLEW, pid._slew), (K_TAU, pid._tau),
-                     (K_RAMP, pid._ramp), (K_TARGET, pid._target), (K_TT, pid._tt)):
-            k[i] = v
-    for i, v in ((K_TILT_PER_V, plant._tilt_per_v), (K_V_REF, plant._v_ref),
-                 (K_V_MIN, plant._v_min), (K_V_MAX, plant._v_max), (K_MAX_DV, plant._max_dv),
-                 (K_ARM, plant._arm), (K_GAIN, plant._gain), (K_OFFSET, plant._offset),
-                 (K_ADC_MIN, plant._adc_min), (K_LSB, plant._lsb), (K_TOP, plant._top),
-                 (K_LINEAR, pend._linear), (K_A11, pend._a11), (K_A12, pend._a12),
-                 (K_A21, pend._a21), (K_A22, pend._a22), (K_B1, pend._b1), (K_B2, pend._b2),
-                 (K_C_PER_J, pend._c_per_j), (K_J, pend._j), (K_C, pend._c), (K_K, pend._k),
-                 (K_MGL, pend._mgl), (K_SUBSTEPS, pend._substeps), (K_PLANT_DT, plant.dt_s),
-                 (K_OFFSET_TILT, plant._offset_tilt), (K_DT, dt_s), (K_PERIOD, period_s),
-                 (K_STUCK_AFTER, stuck_after), (K_MAX_STEP_M, max_step_m),
-                 (K_SPIKE_MAX, spike_max)):
-        k[i] = v
-    k[K_SLEW_V_PER_S] = plant._slew_v_per_s
-    k[K_RAMP_TERMS:] = np.ravel(plant._ramp_k)
-    return k
-
-
-def export_state(plant: Plant, pid: PID | None, dt_s: float, s: np.ndarray, c: np.ndarray
-                 ) -> np.ndarray:
-    """The plant's and PID's state into `s` (up to HELD_V) and `c` (N, BLOCK_I); returns
-    the resonant terms' array (`cycles`' `res`)."""
-    pend = plant.pendulum
-    s[:SP] = (plant.v_applied, plant.v_target, plant.v_effective, plant._lag_v,
-              pend.theta, pend.omega, pend._phi)
-    if pid is not None:
-        s[SP:HELD_V] = (pid._sp, pid._out, pid._u, pid._i, pid._err, pid._df,
-                        math.nan if pid._prev is None else pid._prev, pid._r, pid._res_wait_s)
-    c[N], c[BLOCK_I] = plant.n, plant._i
-    res = None if pid is None else pid._res
-    if res is None:
-        return np.zeros((N_RES, 0))
-    rot_c, rot_s = res.rotation(dt_s)
-    return np.array([rot_c, rot_s, res._cos_out, res._sin_out, res._re, res._im],
-                    dtype=float).reshape(N_RES, -1)
-
-
-def import_state(plant: Plant, pid: PID | None, s: np.ndarray, c: np.ndarray, res: np.ndarray,
-                 engaged: bool) -> None:
-    """`export_state` undone: the state the kernel left, back to the objects (the PID's
-    only if it was `engaged`: an idle kernel leaves it as it was)."""
-    pend = plant.pendulum
-    st = s.tolist()
-    (plant.v_applied, plant.v_target, plant.v_effective, plant._lag_v, pend.theta,
-     pend.omega, pend._phi) = st[V_APPLIED:SP]
-    if engaged and pid is not None:
-        (pid._sp, pid._out, pid._u, pid._i, pid._err, pid._df, pid._prev, pid._r,
-         pid._res_wait_s) = st[SP:HELD_V]
-        if pid._res is not None:
-            pid._res._re = res[RES_RE].tolist()
-            pid._res._im = res[RES_IM].tolist()
-    plant.n, plant._i = int(c[N]), int(c[BLOCK_I])
 
 
 def compiled() -> Callable[..., tuple[int, int]] | None:
