@@ -234,6 +234,14 @@ def kernel_constants(plant: Plant, pid: PID | None, dt_s: float, period_s: float
     return k
 
 
+def kernel_block_arrays(plant: Plant) -> tuple[np.ndarray, ...]:
+    """The plant's current disturbance block, as `kernel.cycles` takes it."""
+    b = plant._block
+    return (b.arrays["thermal_tilt_rad"], b.arrays["cooler_tilt_rad"],
+            b.arrays["effect_tilt_rad"], b.arrays["noise_m"], b.arrays["drift_m"],
+            b.arrays["temperature_k"])
+
+
 def export_state(plant: Plant, pid: PID | None, dt_s: float, s: np.ndarray, c: np.ndarray
                  ) -> np.ndarray:
     """The plant's and PID's state into `s` (up to HELD_V) and `c` (N, BLOCK_I); returns
@@ -348,9 +356,7 @@ class _Kernel:
         b = self.sim.plant._block
         if b is not self._block:
             self._block = b
-            self._arrays = (b.arrays["thermal_tilt_rad"], b.arrays["cooler_tilt_rad"],
-                            b.arrays["effect_tilt_rad"], b.arrays["noise_m"],
-                            b.arrays["drift_m"], b.arrays["temperature_k"])
+            self._arrays = kernel_block_arrays(self.sim.plant)
         return self._arrays
 
     def _constants(self) -> np.ndarray:

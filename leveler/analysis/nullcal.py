@@ -53,6 +53,7 @@ from leveler.sim.plant import Plant
 from leveler.virtual import (
     export_state,
     import_state,
+    kernel_block_arrays,
     kernel_constants,
     kernel_unsupported,
 )
@@ -198,12 +199,9 @@ class _NullLoop:
             res = export_state(plant, pid, self.dt_s, s, c)
             s[kn.HELD_V] = self._held
             c[kn.TICK], c[kn.ENGAGED] = plant.n, closed
-            b = plant._block
             drive = ((none, self._extra[i:i + limit]) if closed
                      else (self._logged[i:i + limit], none))
-            m, why = fn(s, c, k, b.arrays["thermal_tilt_rad"], b.arrays["cooler_tilt_rad"],
-                        b.arrays["effect_tilt_rad"], b.arrays["noise_m"], b.arrays["drift_m"],
-                        b.arrays["temperature_k"], res, *drive, out, out_i, limit)
+            m, why = fn(s, c, k, *kernel_block_arrays(plant), res, *drive, out, out_i, limit)
             import_state(plant, pid, s, c, res, closed)
             self._held = float(s[kn.HELD_V])
             self.y[i:i + m] = out[kn.SENSOR_M, :m]
