@@ -8,7 +8,8 @@ diagnosed in at most 2 minutes on 2 cores, reading the log included (as the comm
 A fresh null calibration (`leveler diagnose --null-runs 50`, issue 17's goal: 15 min for a
 day on 2 cores) simulates a null log per run on the log's schedule; the rows time one
 such simulation by the objects (the baseline) and with its uneventful samples in the
-compiled kernel, and check the two logs are the same to the bit. The whole calibration
+compiled kernel, and check the two logs are the same to the bit; and the replay of the
+logged controller that tells each log's excitation (`excitation_v`), likewise. The whole calibration
 takes too long for this bench: docs/replay.md gives it, measured by hand.
 """
 
@@ -24,7 +25,7 @@ from common import REPO, bench_tmpdir, row  # beside this script
 
 from leveler.analysis.diagnose import diagnose
 from leveler.analysis.nullcal import simulate_null
-from leveler.analysis.predict import load_measured
+from leveler.analysis.predict import _excitation_v, load_measured
 from leveler.analysis.replay import replay
 from leveler.analysis.synthetic import make_measured
 from leveler.settings import load_config
@@ -59,11 +60,19 @@ def measure(duration_s: float) -> dict[str, Any]:
             logs[kernel] = simulate_null(meas, 1, kernel=kernel).y_m
             null_s[kernel] = time.perf_counter() - start
         same = bool(np.array_equal(logs["off"], logs["auto"]))
+        exc_s, excs = {}, {}
+        _excitation_v(meas)  # the compile again
+        for kernel in ("off", "auto"):
+            start = time.perf_counter()
+            excs[kernel] = _excitation_v(meas, kernel=kernel)
+            exc_s[kernel] = time.perf_counter() - start
+        exc_same = bool(np.array_equal(excs["off"], excs["auto"]))
     return {"samples": len(meas.y_m), "read_s": read_s, "replay_s": replay_s,
             "diagnose_s": diagnose_s, "hidden": truth.describe(),
             "found": [f.effect.describe() for f in found.effects],
             "null_objects_s": null_s["off"], "null_kernel_s": null_s["auto"],
-            "null_same": same}
+            "null_same": same, "exc_objects_s": exc_s["off"], "exc_kernel_s": exc_s["auto"],
+            "exc_same": exc_same}
 
 
 def run(quick: bool) -> list[dict[str, Any]]:
@@ -99,4 +108,11 @@ def run(quick: bool) -> list[dict[str, Any]]:
             ratio=d["null_objects_s"] / d["null_kernel_s"],
             note="the same log to the bit" if d["null_same"]
             else "NOT the objects' log: a bug"),
+        row(SECTION, "the logged controller replayed for the excitation, by the PID "
+            "object (baseline)", d["exc_objects_s"], "s", note=hours),
+        row(SECTION, "  the same, after each engage in the compiled kernel",
+            d["exc_kernel_s"], "s", baseline="PID object",
+            ratio=d["exc_objects_s"] / d["exc_kernel_s"],
+            note="the same excitation to the bit" if d["exc_same"]
+            else "NOT the object's excitation: a bug"),
     ]

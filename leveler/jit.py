@@ -15,13 +15,25 @@ from typing import Any
 
 
 @functools.cache
-def compiled(fn: Callable[..., Any]) -> Callable[..., Any] | None:
-    """`fn` compiled by numba's njit, or None when numba is not installed."""
+def compiled(fn: Callable[..., Any], *helpers: Callable[..., Any]
+             ) -> Callable[..., Any] | None:
+    """`fn` compiled by numba's njit, or None when numba is not installed. `helpers`: the
+    plain functions of its module that `fn` calls, made callable from compiled code (each
+    once a process; they stay plain for interpreted callers)."""
     try:
         import numba
     except ImportError:
         return None
+    for helper in helpers:
+        _jitable(helper)
     try:
         return numba.njit(cache=True, nogil=True)(fn)  # type: ignore[no-any-return]
     except RuntimeError:  # no writable cache directory
         return numba.njit(nogil=True)(fn)  # type: ignore[no-any-return]
+
+
+@functools.cache
+def _jitable(fn: Callable[..., Any]) -> None:
+    from numba.extending import register_jitable
+
+    register_jitable(fn)

@@ -181,9 +181,9 @@ class VirtualStand:
                                                          r.tilt_rad)), r.events)
 
 
-# The plant's and PID's private state, mapped to `leveler.loop.kernel`'s arrays here and
-# only here (the loop's by `_Kernel`; a null log's schedule by `leveler.analysis.nullcal`):
-# tests hold the kernel's runs to the objects'.
+# The plant's private state, mapped to `leveler.loop.kernel`'s arrays here and only here
+# (the PID's by the kernel module, its own wing's), for the loop's `_Kernel` and a null
+# log's schedule (`leveler.analysis.nullcal`): tests hold the kernel's runs to the objects'.
 
 def kernel_unsupported(plant: Plant, pid: PID | None) -> str:
     """Why `kernel.cycles` cannot step this plant and PID ('' when it can): it knows one
@@ -193,11 +193,7 @@ def kernel_unsupported(plant: Plant, pid: PID | None) -> str:
         return "oversampling ADC"
     if plant._actuator_fx or plant._delay_s > 0 or plant._sensor_fx or plant._resonances:
         return "an actuator, sensor or resonance effect"
-    if pid is not None and pid.config.notch is not None:
-        return "a notch on the reading"
-    if pid is not None and pid.config.gains.ki2:
-        return "a double integral"
-    return ""
+    return kn.pid_unsupported(pid) if pid is not None else ""
 
 
 def kernel_constants(plant: Plant, pid: PID | None, dt_s: float, period_s: float,
@@ -209,11 +205,7 @@ def kernel_constants(plant: Plant, pid: PID | None, dt_s: float, period_s: float
     pend = plant.pendulum
     k = np.zeros(kn.N_CONST + 2 * len(plant._ramp_k))
     if pid is not None:
-        for i, v in ((kn.K_KP, pid._kp), (kn.K_KI, pid._ki), (kn.K_KD, pid._kd),
-                     (kn.K_LO, pid._lo), (kn.K_HI, pid._hi), (kn.K_SLEW, pid._slew),
-                     (kn.K_TAU, pid._tau), (kn.K_RAMP, pid._ramp),
-                     (kn.K_TARGET, pid._target), (kn.K_TT, pid._tt)):
-            k[i] = v
+        kn.pid_constants(pid, dt_s, k)
     for i, v in ((kn.K_TILT_PER_V, plant._tilt_per_v), (kn.K_V_REF, plant._v_ref),
                  (kn.K_V_MIN, plant._v_min), (kn.K_V_MAX, plant._v_max),
                  (kn.K_MAX_DV, plant._max_dv), (kn.K_ARM, plant._arm),
@@ -249,17 +241,8 @@ def export_state(plant: Plant, pid: PID | None, dt_s: float, s: np.ndarray, c: n
     pend = plant.pendulum
     s[:kn.SP] = (plant.v_applied, plant.v_target, plant.v_effective, plant._lag_v,
                  pend.theta, pend.omega, pend._phi)
-    if pid is not None:
-        s[kn.SP:kn.HELD_V] = (pid._sp, pid._out, pid._u, pid._i, pid._err, pid._df,
-                              math.nan if pid._prev is None else pid._prev, pid._r,
-                              pid._res_wait_s)
     c[kn.N], c[kn.BLOCK_I] = plant.n, plant._i
-    res = None if pid is None else pid._res
-    if res is None:
-        return np.zeros((kn.N_RES, 0))
-    rot_c, rot_s = res.rotation(dt_s)
-    return np.array([rot_c, rot_s, res._cos_out, res._sin_out, res._re, res._im],
-                    dtype=float).reshape(kn.N_RES, -1)
+    return kn.export_pid(pid, dt_s, s) if pid is not None else np.zeros((kn.N_RES, 0))
 
 
 def import_state(plant: Plant, pid: PID | None, s: np.ndarray, c: np.ndarray, res: np.ndarray,
@@ -271,11 +254,7 @@ def import_state(plant: Plant, pid: PID | None, s: np.ndarray, c: np.ndarray, re
     (plant.v_applied, plant.v_target, plant.v_effective, plant._lag_v, pend.theta,
      pend.omega, pend._phi) = st[kn.V_APPLIED:kn.SP]
     if engaged and pid is not None:
-        (pid._sp, pid._out, pid._u, pid._i, pid._err, pid._df, pid._prev, pid._r,
-         pid._res_wait_s) = st[kn.SP:kn.HELD_V]
-        if pid._res is not None:
-            pid._res._re = res[kn.RES_RE].tolist()
-            pid._res._im = res[kn.RES_IM].tolist()
+        kn.import_pid(pid, s, res)
     plant.n, plant._i = int(c[kn.N]), int(c[kn.BLOCK_I])
 
 

@@ -132,6 +132,64 @@ def test_the_kernel_simulates_a_null_log_as_the_objects_do(
         nullcal.simulate_null(meas, 4, kernel="fast")
 
 
+@pytest.mark.parametrize("kernel", KERNELS)
+@pytest.mark.filterwarnings("ignore:invalid value encountered:RuntimeWarning")  # interpreted
+@pytest.mark.parametrize("schedule", ["closed, dithered", "closed twice", "resonant terms",
+                                      "a notch", "an overflow"])
+def test_the_kernel_replays_the_controller_as_the_objects_do(
+        modulated_log: Path, schedule: str, kernel: str, monkeypatch: pytest.MonkeyPatch
+        ) -> None:
+    """`excitation_v`'s replay of the logged controller by `kernel.replay` after each
+    engage: the same excitation to the bit as the `PID` object's alone, the loop closed
+    once or twice, with resonant terms; the objects alone where the kernel cannot run the
+    PID (a notch), and where the PID raises (an overflow), raising as they do."""
+    meas = load_measured(modulated_log)
+    n = len(meas.y_m)
+    c = meas.controller
+    assert c is not None and meas.engaged is not None
+    if schedule == "closed twice":
+        meas = dataclasses.replace(meas, engaged=(np.arange(n) % (n // 2)) >= n // 6)
+    elif schedule in ("resonant terms", "a notch"):
+        c = dataclasses.replace(c, periodic_period_s=300.0, periodic_gains_v_per_m_s=(2e3, 1e3),
+                                periodic_phases_rad=(0.3, -0.2)) if schedule != "a notch" \
+            else dataclasses.replace(c, notch_frequency_hz=0.7)
+        meas = dataclasses.replace(meas, controller=c)
+    elif schedule == "an overflow":
+        y = meas.y_m.copy()
+        y[n - 5] = 1e308
+        meas = dataclasses.replace(meas, y_m=y)
+    ran: list[int] = []
+    fn = kn.compiled_replay() if kernel == "auto" else kn.replay
+
+    def counted(*args: object) -> tuple[int, int]:
+        out = fn(*args)
+        ran.append(out[0])
+        return out
+
+    if kernel == "auto":
+        monkeypatch.setattr(kn, "compiled_replay", lambda: counted)
+    else:
+        monkeypatch.setattr(kn, "replay", counted)
+    if schedule == "an overflow":
+        for k in ("off", kernel):
+            with pytest.raises(OverflowError):
+                predict._excitation_v(meas, kernel=k)
+        assert ran and sum(ran) > 0.5 * n  # the kernel ran up to it, then the objects
+        return
+    ref = predict._excitation_v(meas, kernel="off")
+    assert ref is not None and not ran
+    got = predict._excitation_v(meas, kernel=kernel)
+    assert got is not None and np.array_equal(got, ref)
+    closed = int(np.count_nonzero(meas.engaged))
+    if schedule == "a notch":
+        assert not ran
+    else:
+        engages = int(np.count_nonzero(np.diff(np.asarray(meas.engaged, np.int8)) == 1)
+                      + bool(meas.engaged[0]))
+        assert sum(ran) == closed - engages  # all but each engage's first sample
+    assert np.std(ref[np.asarray(meas.engaged)]) > 0  # a dither to be found
+
+
 def test_forked_workers_calibrate_as_one_process_does(modulated_log: Path,
                                                       monkeypatch: pytest.MonkeyPatch) -> None:
     """The workers read the log from the fork (not pickled to each run) and keep its

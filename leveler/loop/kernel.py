@@ -11,6 +11,11 @@ disturbance block, an overflowing PID) stops it *before* changing the state that
 decision needs, and `leveler.virtual` lets the daemon's own code run that cycle. So the
 objects stay the reference: tests hold `cycles` (compiled and interpreted) to them bit for
 bit, and the real-time daemon never runs this module.
+
+The PID's arithmetic is one function, `pid_step`, that `cycles` calls and so does
+`replay`, which answers a log's own readings as its logged controller did (diagnose's
+excitation, `leveler.analysis.predict`). The PID's state and constants map to the arrays
+here (`export_pid`, `import_pid`, `pid_constants`); the plant's in `leveler.virtual`.
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ from collections.abc import Callable
 import numpy as np
 
 from leveler import jit
+from leveler.loop.pid import PID
 
 # The float state: plant, pendulum, PID, loop.
 (V_APPLIED, V_TARGET, V_EFFECTIVE, LAG_V, THETA, OMEGA, PHI, SP, OUTPUT, UNCLAMPED, INTEGRAL,
@@ -71,11 +77,9 @@ def cycles(s: np.ndarray, c: np.ndarray, k: np.ndarray, thermal: np.ndarray,
     `Plant.step`/`measure`, `PendulumModel.step`, `Loop._screen`, `PID.update`,
     `Resonators`, `Plant.command` and `Plant.truth` one for one; change them together."""
     blen = len(noise)
-    inf = math.inf
     tilt_per_v, v_ref = k[K_TILT_PER_V], k[K_V_REF]
     v_min, v_max, max_dv = k[K_V_MIN], k[K_V_MAX], k[K_MAX_DV]
     offset_tilt = k[K_OFFSET_TILT]
-    dt = k[K_DT]
     done = 0
     while done < limit:
         i = c[BLOCK_I]
@@ -156,73 +160,16 @@ def cycles(s: np.ndarray, c: np.ndarray, k: np.ndarray, thermal: np.ndarray,
                 and c[SPIKES] < k[K_SPIKE_MAX]):
             return done, AFTER_STEP
         # -- PID.update (engaged) or the held voltage (idle)
-        sp = s[SP]
-        target = k[K_TARGET]
         if c[ENGAGED] != 0:
-            if sp != target:
-                step = k[K_RAMP] * dt
-                if target - sp > step:
-                    sp += step
-                elif sp - target > step:
-                    sp -= step
-                else:
-                    sp = target
-            error = sp - value
-            p = k[K_KP] * error
-            tau = k[K_TAU]
-            df = (tau * s[DF] + (value - s[PREV])) / (tau + dt)
-            d = -k[K_KD] * df
-            integral = s[INTEGRAL]
-            nres = res.shape[1]
-            r = 0.0
-            if nres == 0:
-                u = p + integral + d
-            else:
-                for j in range(nres):
-                    r += (res[RES_COS_OUT, j] * res[RES_RE, j]
-                          - res[RES_SIN_OUT, j] * res[RES_IM, j])
-                u = p + integral + r + d
-            lo, hi = k[K_LO], k[K_HI]
-            cmd = lo if u < lo else hi if u > hi else u
-            last = s[OUTPUT]
-            step = k[K_SLEW] * dt
-            if cmd > last + step:
-                cmd = last + step
-            elif cmd < last - step:
-                cmd = last - step
-            tt = k[K_TT]
-            k_track = dt / (tt + dt) if tt > 0.0 else _SAMPLE_TRACKING_GAIN
-            delta = k[K_KI] * error * dt + (cmd - u) * k_track
-            if (delta > 0.0 and cmd >= hi) or (delta < 0.0 and cmd <= lo):
-                delta = 0.0
-            i_next = integral + delta
-            if not -inf < i_next + cmd < inf:
+            ok, p, integral, d, cmd, u = pid_step(s, k, res, value)
+            if not ok:
                 return done, AFTER_STEP  # the PID raises; the loop faults
-            s[SP] = sp
-            s[INTEGRAL] = i_next
-            s[OUTPUT] = cmd
-            s[UNCLAMPED] = u
-            s[ERR] = error
-            s[DF] = df
-            s[PREV] = value
-            if nres != 0:
-                if s[RES_WAIT_S] > 0.0:
-                    s[RES_WAIT_S] -= dt
-                    x = 0.0
-                else:
-                    x = error * dt if cmd == u else 0.0
-                for j in range(nres):
-                    a, b = res[RES_RE, j], res[RES_IM, j]
-                    res[RES_RE, j] = res[RES_C, j] * a - res[RES_S, j] * b + x
-                    res[RES_IM, j] = res[RES_S, j] * a + res[RES_C, j] * b
-                s[R_LAST] = r
-                integral = integral + r  # reported within i_v, as PID.update does
-            setpoint = sp
+            setpoint = s[SP]
             saturated = cmd != u
         else:
             p = integral = d = 0.0
             cmd = open_v[done] if len(open_v) != 0 else s[HELD_V]
-            setpoint = target
+            setpoint = k[K_TARGET]
             saturated = False
         c[SAME] = same
         c[SPIKES] = 0
@@ -264,7 +211,137 @@ def cycles(s: np.ndarray, c: np.ndarray, k: np.ndarray, thermal: np.ndarray,
     return done, DONE
 
 
+def pid_step(s: np.ndarray, k: np.ndarray, res: np.ndarray, value: float
+             ) -> tuple[bool, float, float, float, float, float]:
+    """`PID.update` of reading `value` on the state in `s` (rows SP to R_LAST) and `res`:
+    (ok, p, i as reported, d, the command, the unclamped sum). Not ok: the PID would raise
+    (its arithmetic overflowed), and nothing has changed. One copy of the arithmetic for
+    every loop over arrays here: `cycles` and `replay`."""
+    inf = math.inf
+    dt = k[K_DT]
+    sp = s[SP]
+    target = k[K_TARGET]
+    if sp != target:
+        step = k[K_RAMP] * dt
+        if target - sp > step:
+            sp += step
+        elif sp - target > step:
+            sp -= step
+        else:
+            sp = target
+    error = sp - value
+    p = k[K_KP] * error
+    tau = k[K_TAU]
+    df = (tau * s[DF] + (value - s[PREV])) / (tau + dt)
+    d = -k[K_KD] * df
+    integral = s[INTEGRAL]
+    nres = res.shape[1]
+    r = 0.0
+    if nres == 0:
+        u = p + integral + d
+    else:
+        for j in range(nres):
+            r += (res[RES_COS_OUT, j] * res[RES_RE, j]
+                  - res[RES_SIN_OUT, j] * res[RES_IM, j])
+        u = p + integral + r + d
+    lo, hi = k[K_LO], k[K_HI]
+    cmd = lo if u < lo else hi if u > hi else u
+    last = s[OUTPUT]
+    step = k[K_SLEW] * dt
+    if cmd > last + step:
+        cmd = last + step
+    elif cmd < last - step:
+        cmd = last - step
+    tt = k[K_TT]
+    k_track = dt / (tt + dt) if tt > 0.0 else _SAMPLE_TRACKING_GAIN
+    delta = k[K_KI] * error * dt + (cmd - u) * k_track
+    if (delta > 0.0 and cmd >= hi) or (delta < 0.0 and cmd <= lo):
+        delta = 0.0
+    i_next = integral + delta
+    if not -inf < i_next + cmd < inf:
+        return False, p, integral, d, cmd, u
+    s[SP] = sp
+    s[INTEGRAL] = i_next
+    s[OUTPUT] = cmd
+    s[UNCLAMPED] = u
+    s[ERR] = error
+    s[DF] = df
+    s[PREV] = value
+    if nres != 0:
+        if s[RES_WAIT_S] > 0.0:
+            s[RES_WAIT_S] -= dt
+            x = 0.0
+        else:
+            x = error * dt if cmd == u else 0.0
+        for j in range(nres):
+            a, b = res[RES_RE, j], res[RES_IM, j]
+            res[RES_RE, j] = res[RES_C, j] * a - res[RES_S, j] * b + x
+            res[RES_IM, j] = res[RES_S, j] * a + res[RES_C, j] * b
+        s[R_LAST] = r
+        integral = integral + r  # reported within i_v, as PID.update does
+    return True, p, integral, d, cmd, u
+
+
+def replay(s: np.ndarray, k: np.ndarray, res: np.ndarray, y: np.ndarray, cmd: np.ndarray,
+           limit: int) -> tuple[int, int]:
+    """The PID's commands for the readings y[:limit], from the state in (s, res): a logged
+    controller replayed on its own log (`leveler.analysis.predict.excitation_v`). Returns
+    (samples done, DONE), or (j, BEFORE) where reading j would make the PID raise: the
+    objects take that one."""
+    for j in range(limit):
+        ok, _, _, _, c_v, _ = pid_step(s, k, res, y[j])
+        if not ok:
+            return j, BEFORE
+        cmd[j] = c_v
+    return limit, DONE
+
+
+def pid_unsupported(pid: PID) -> str:
+    """Why `pid_step` cannot run this PID ('' when it can)."""
+    if pid.config.notch is not None:
+        return "a notch on the reading"
+    if pid.config.gains.ki2:
+        return "a double integral"
+    return ""
+
+
+# The PID's private state's one mapping to the arrays (the plant's is `leveler.virtual`'s).
+def pid_constants(pid: PID, dt_s: float, k: np.ndarray) -> None:
+    """The PID's constants, updated every `dt_s`, into `k`."""
+    for i, v in ((K_KP, pid._kp), (K_KI, pid._ki), (K_KD, pid._kd), (K_LO, pid._lo),
+                 (K_HI, pid._hi), (K_SLEW, pid._slew), (K_TAU, pid._tau),
+                 (K_RAMP, pid._ramp), (K_TARGET, pid._target), (K_TT, pid._tt),
+                 (K_DT, dt_s)):
+        k[i] = v
+
+
+def export_pid(pid: PID, dt_s: float, s: np.ndarray) -> np.ndarray:
+    """The PID's state into s[SP:HELD_V]; returns its resonant terms as `res`."""
+    s[SP:HELD_V] = (pid._sp, pid._out, pid._u, pid._i, pid._err, pid._df,
+                    math.nan if pid._prev is None else pid._prev, pid._r, pid._res_wait_s)
+    res = pid._res
+    if res is None:
+        return np.zeros((N_RES, 0))
+    rot_c, rot_s = res.rotation(dt_s)
+    return np.array([rot_c, rot_s, res._cos_out, res._sin_out, res._re, res._im],
+                    dtype=float).reshape(N_RES, -1)
+
+
+def import_pid(pid: PID, s: np.ndarray, res: np.ndarray) -> None:
+    """`export_pid` undone: the state the kernel left, back to the PID."""
+    (pid._sp, pid._out, pid._u, pid._i, pid._err, pid._df, pid._prev, pid._r,
+     pid._res_wait_s) = s[SP:HELD_V].tolist()
+    if pid._res is not None:
+        pid._res._re = res[RES_RE].tolist()
+        pid._res._im = res[RES_IM].tolist()
+
+
 def compiled() -> Callable[..., tuple[int, int]] | None:
     """`cycles` compiled by numba (`leveler.jit`), or None when numba is not installed
     (`pip install lab-leveler[fast]`)."""
-    return jit.compiled(cycles)
+    return jit.compiled(cycles, pid_step)
+
+
+def compiled_replay() -> Callable[..., tuple[int, int]] | None:
+    """`replay` compiled, as `compiled`."""
+    return jit.compiled(replay, pid_step)
