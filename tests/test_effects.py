@@ -206,6 +206,22 @@ def test_two_equal_lags_keep_two_start_shapes() -> None:
     assert len(one.start_shapes(Signals(t, dt))) == 1
 
 
+def test_a_coupling_whose_lag_grows_past_half_the_log_has_moved_off_toward_a_trend() -> None:
+    """What held out at 868 s and 585 s, refitted at 10,080 s in a 10,800 s log, is the
+    lagged temperature becoming a trend (`diagnose._confirm` keeps what held out); a
+    refit within half the log, or one that held out long already, has not moved off."""
+    from types import SimpleNamespace
+
+    ev: Any = SimpleNamespace(sig=Signals(np.arange(0.0, 10800.0, 0.1), 0.1))
+    held = TemperatureCoupling(tilt_per_kelvin_rad_per_k=1.57e-5, lag_s=868.0, lag2_s=585.0)
+    trend = TemperatureCoupling(tilt_per_kelvin_rad_per_k=1.26e-4, lag_s=10080.0,
+                                lag2_s=122.0)
+    assert "toward a trend" in held.moved_off(trend, ev)
+    assert held.moved_off(held.replace(lag_s=5000.0), ev) == ""
+    assert trend.moved_off(trend.replace(lag_s=20000.0), ev) == ""
+    assert Effect.moved_off(held, trend, ev) == ""  # no other family has such a ridge
+
+
 @pytest.mark.parametrize("noise_steps", [0.05, 0.2, 0.3, 1.0, 3.0])
 def test_the_expected_reading_of_a_noisy_quantizer_is_its_mean_rounding(noise_steps: float) -> None:
     """E[round(v + n)] for Gaussian n, by quadrature over n: the level sum (small noise)

@@ -595,8 +595,8 @@ def _confirm(r: _Round, f: Fit, check: Fit, evidence: float, nuisance: Nuisance,
         if f.effect.beyond_part_gains:
             on_whole = with_shapes(on_whole, w_whole, r.part_gains)
         refit = _refit(final, pred, w_whole, meas, on_whole)
-        if refit.effect.degenerate(ev):  # what held out was the fit before this one
-            break
+        if refit.effect.degenerate(ev) or f.effect.moved_off(refit.effect, ev):
+            break  # what held out was the fit before this one
         if not _stable(f.effect, refit.effect) and deviance(
                 _effect_cost(f.effect, pred, w_whole, meas, on_whole),
                 _effect_cost(refit.effect, pred, w_whole, meas, on_whole)
