@@ -188,6 +188,8 @@ def test_the_kernel_replays_the_controller_as_the_objects_do(
                       + bool(meas.engaged[0]))
         assert sum(ran) == closed - engages  # all but each engage's first sample
     assert np.std(ref[np.asarray(meas.engaged)]) > 0  # a dither to be found
+    with pytest.raises(ValueError, match="kernel must be"):
+        predict._excitation_v(meas, kernel="fast")
 
 
 def test_forked_workers_calibrate_as_one_process_does(modulated_log: Path,

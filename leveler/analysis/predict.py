@@ -206,7 +206,10 @@ def _excitation_v(meas: Measured, kernel: str = "auto") -> np.ndarray | None:
     """`excitation_v` worked out: the logged controller replayed on the logged readings.
     `kernel`: who replays the closed loop's samples after each engage ("auto": compiled
     where numba is installed, "python": interpreted, "off": the `PID` object alone); the
-    same answer to the bit whoever does (a day's replay took 1.4 s as objects)."""
+    same answer to the bit whoever does (a day's replay: 0.52 s as objects, 0.064 s
+    compiled)."""
+    if kernel not in ("auto", "python", "off"):
+        raise ValueError(f"kernel must be auto, python or off, not {kernel!r}")
     if meas.controller is None or meas.engaged is None:
         return _unexplained_by_feedback(meas)
     pid = PID(meas.controller.pid_config())
