@@ -441,8 +441,6 @@ class TemperatureCoupling(Effect):
         refitted on the whole log at 126 urad/K through 10,080 s and 122 s (the log is
         10,800 s), was rejected, and a drift that is not there was named in its place."""
         assert isinstance(refit, TemperatureCoupling)
-        if refit.tilt_per_kelvin_rad_per_k * self.tilt_per_kelvin_rad_per_k < 0:
-            return "its sign flipped: another path beside the thermal one, not this coupling"
         half_s = 0.5 * float(ev.sig.t_s[-1] - ev.sig.t_s[0])
         was, now = max(self.lag_s, self.lag2_s), max(refit.lag_s, refit.lag2_s)
         if was <= half_s < now:
