@@ -58,6 +58,8 @@ def format_status(st: dict[str, Any]) -> str:
         f"leveler {st['version']} (pid {st['pid']}), up {st['uptime_s'] / 60:.1f} min, "
         f"config {st['config_path']}",
         f"state       {st['state']}" + (f"  ({st['fault_reason']})" if st["fault_reason"] else ""),
+        *([f"            {st['faults']} fault(s) since start; last: {st['last_fault']}"]
+          if st.get("faults") and not st["fault_reason"] else []),
         *([f"            LOOP STALLED: no cycle for {lp['last_cycle_age_s']:.1f} s (a device "
            "call that does not return?); values below are from the last cycle"]
           if lp.get("stalled") else []),

@@ -334,6 +334,8 @@ class Daemon:
             "uptime_s": round(time.monotonic() - self.started_mono, 3),
             "state": self.loop.state,
             "fault_reason": self.loop.fault_reason,
+            "faults": self.loop.faults,
+            "last_fault": self.loop.last_fault,
             "driver_errors": dict(self.loop.errors),
             "modulation": (dataclasses.asdict(self.loop.wave) if self.loop.wave is not None
                            else None),

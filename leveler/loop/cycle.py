@@ -88,6 +88,10 @@ class Loop:
         self._truth = truth
         self.state = IDLE
         self.fault_reason = ""
+        # Kept after a reset or an automatic reconnect: a fault that healed itself at 3 a.m.
+        # is still told by `leveler status` in the morning.
+        self.faults = 0
+        self.last_fault = ""
         self.seq = 0
         self.held_v = actuator.safe_v
         self.safe_unconfirmed = False  # in fault: make_safe failed, applied_v is unknown
@@ -215,7 +219,8 @@ class Loop:
             if self.wave is not None:
                 self.wave = None
                 self.emit("procedure", f"modulation aborted: {reason}", t_s)
-            self.fault_reason = reason
+            self.fault_reason = self.last_fault = reason
+            self.faults += 1
             self._transition(FAULT, reason, t_s)
 
     def _driver_error(self, t_s: float, device: str, what: str) -> None:
