@@ -27,11 +27,14 @@ FAST_RECONNECT = {"engage_on_start = true": "engage_on_start = true\nreconnect_m
                   "safe_v = 75.0": "safe_v = 60.0"}  # far from where leveling holds the piezo
 
 
-def _wait_state(d: object, state: str, timeout_s: float) -> None:
-    """Wait for the daemon's state; on a timeout say what it last reported (a reconnect
-    that never resumed failed once in four CI runs, and nothing said why)."""
+def _wait_state(d: object, state: str, timeout_s: float, faults: int = 0) -> None:
+    """Wait for the daemon's state, after at least `faults` faults since start (a fault that
+    heals in half a second is missed by polling on a loaded machine; the count is not). On
+    a timeout say what it last reported (a reconnect that never resumed failed once in four
+    CI runs, and nothing said why)."""
     deadline = time.monotonic() + timeout_s
-    while (status := json.loads(d.cli("status", "--json").stdout))["state"] != state:  # type: ignore[attr-defined]
+    while ((status := json.loads(d.cli("status", "--json").stdout))["state"] != state  # type: ignore[attr-defined]
+           or status["faults"] < faults):
         assert time.monotonic() < deadline, f"never {state}; last status: {status}"
         time.sleep(0.1)
 
@@ -97,8 +100,7 @@ def test_dropped_link_faults_sets_the_piezo_safe_on_the_wire_and_resumes(
             emu.inject("drop", count=3)  # the module closes every connection, three times
         else:  # the sensor's cable: its pty closes and a new one appears at the same path
             emu.inject("drop", port="sensor")
-        _wait_state(d, "fault", 10.0)
-        _wait_state(d, "engaged", 15.0)  # reconnected and closed again, nobody asked
+        _wait_state(d, "engaged", 25.0, faults=1)  # reconnected and closed again, nobody asked
         time.sleep(1.0)
         d.stop()  # type: ignore[attr-defined]
         received = list(emu.received_v)
