@@ -80,6 +80,25 @@ KERNELS = ["python", pytest.param("auto", marks=pytest.mark.skipif(
     kn.compiled() is None, reason="numba not installed"))]
 
 
+def _count_kernel_samples(monkeypatch: pytest.MonkeyPatch, kernel: str, compiled: str,
+                          interpreted: str) -> list[int]:
+    """Wrap the kernel function `kernel` selects ("auto": the compiled one that the factory
+    `compiled` returns; "python": `interpreted`): the list gets each call's sample count."""
+    ran: list[int] = []
+    fn = getattr(kn, compiled)() if kernel == "auto" else getattr(kn, interpreted)
+
+    def counted(*args: object) -> tuple[int, int]:
+        out = fn(*args)
+        ran.append(out[0])
+        return out
+
+    if kernel == "auto":
+        monkeypatch.setattr(kn, compiled, lambda: counted)
+    else:
+        monkeypatch.setattr(kn, interpreted, counted)
+    return ran
+
+
 @pytest.mark.parametrize("kernel", KERNELS)
 @pytest.mark.parametrize("schedule", ["closed, dithered", "open third, then closed",
                                       "open, no controller", "oversampled"])
@@ -103,18 +122,7 @@ def test_the_kernel_simulates_a_null_log_as_the_objects_do(
         meas = dataclasses.replace(meas, config=dataclasses.replace(
             meas.config, plant=dataclasses.replace(plant, sensor=dataclasses.replace(
                 plant.sensor, samples_per_cycle=4))))
-    ran: list[int] = []
-    fn = kn.compiled() if kernel == "auto" else kn.cycles
-
-    def counted(*args: object) -> tuple[int, int]:
-        out = fn(*args)
-        ran.append(out[0])
-        return out
-
-    if kernel == "auto":
-        monkeypatch.setattr(kn, "compiled", lambda: counted)
-    else:
-        monkeypatch.setattr(kn, "cycles", counted)
+    ran = _count_kernel_samples(monkeypatch, kernel, "compiled", "cycles")
     ref = nullcal.simulate_null(meas, 4, kernel="off")
     assert not ran
     got = nullcal.simulate_null(meas, 4, kernel=kernel)
@@ -158,18 +166,7 @@ def test_the_kernel_replays_the_controller_as_the_objects_do(
         y = meas.y_m.copy()
         y[n - 5] = 1e308
         meas = dataclasses.replace(meas, y_m=y)
-    ran: list[int] = []
-    fn = kn.compiled_replay() if kernel == "auto" else kn.replay
-
-    def counted(*args: object) -> tuple[int, int]:
-        out = fn(*args)
-        ran.append(out[0])
-        return out
-
-    if kernel == "auto":
-        monkeypatch.setattr(kn, "compiled_replay", lambda: counted)
-    else:
-        monkeypatch.setattr(kn, "replay", counted)
+    ran = _count_kernel_samples(monkeypatch, kernel, "compiled_replay", "replay")
     if schedule == "an overflow":
         for k in ("off", kernel):
             with pytest.raises(OverflowError):
