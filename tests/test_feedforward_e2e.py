@@ -78,7 +78,7 @@ def test_a_daemon_without_a_thermometer_refuses_a_feedforward(start_daemon) -> N
 
 def _cfgs(**th: object) -> tuple[ModbusSensorConfig, ModbusActuatorConfig,
                                   ModbusThermometerConfig]:
-    fast = {"timeout_s": 0.25, "reconnect_min_s": 0.2, "reconnect_max_s": 0.8}
+    fast = {"timeout_s": 1.0, "reconnect_min_s": 0.2, "reconnect_max_s": 0.8}
     return (ModbusSensorConfig(**fast), ModbusActuatorConfig(**fast),
             ModbusThermometerConfig(**fast, **th))  # type: ignore[arg-type]
 
