@@ -269,7 +269,7 @@ def test_degenerate_fits_are_no_evidence() -> None:
     # A gain error that leaves the sensor path within the accepted pull is a calibration.
     assert "a calibration, not an effect" in SensorGainError(gain_error=-0.05).degenerate(ev)  # type: ignore[arg-type]
     assert SensorGainError(gain_error=-0.15).degenerate(ev) == ""  # type: ignore[arg-type]
-    # A delay under a tenth of a sample is sampling and hold.
+    # A delay under a twentieth of a sample is sampling and hold.
     assert "sampling and hold" in ActuatorDelay(delay_s=0.003).degenerate(ev)  # type: ignore[arg-type]
     assert ActuatorDelay(delay_s=0.04).degenerate(ev) == ""  # type: ignore[arg-type]
     # A mode whose band reaches near the pendulum's resonance (0.73 Hz) is its f0 or Q.

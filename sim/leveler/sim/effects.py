@@ -481,8 +481,11 @@ class TemperatureCoupling(Effect):
 # -- actuator: volts commanded -> volts that move the piezo ----------------------------------
 
 
-#: a delay under this share of a sample is sampling and hold, not a delay
-MIN_DELAY_SAMPLES = 0.1
+#: a delay under this share of a sample is sampling and hold, not a delay: an independent
+#: simulator's null log read as 3.2 ms at 10 Hz; its weak delays under a square modulation
+#: (9.4-14.3 ms) fit at 6-9 ms, part of them in the first recalibration's pendulum
+#: frequency and Q, and a tenth of a sample (10 ms) threw them out before any test
+MIN_DELAY_SAMPLES = 0.05
 
 
 _NOT_ON_THE_VOLTAGE = ("an actuator delay is no stage on the voltage: it moves the piezo's "
@@ -521,10 +524,9 @@ class ActuatorDelay(Effect):
         raise TypeError(_NOT_ON_THE_VOLTAGE)
 
     def degenerate(self, ev: Evidence) -> str:
-        """A delay under a tenth of a sample is how the DAQ times its read and write within
-        a sample, and how the model holds a slewing command between samples, not a part
-        of the stand: an independent simulator's null log (its own integration and hold)
-        read as a 3.2 ms delay at 10 Hz."""
+        """A delay under a twentieth of a sample (MIN_DELAY_SAMPLES) is how the DAQ times
+        its read and write within a sample, and how the model holds a slewing command
+        between samples, not a part of the stand."""
         if self.delay_s < MIN_DELAY_SAMPLES * ev.sig.dt_s:
             return (f"a delay of {self.delay_s * 1e3:.3g} ms is under "
                     f"{MIN_DELAY_SAMPLES:g} of a {ev.sig.dt_s * 1e3:.3g} ms sample: "
