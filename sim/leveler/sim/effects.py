@@ -95,6 +95,9 @@ class Effect:
     # modulation, the loop closed), its baseline too: only what no such gain explains is
     # its evidence (`leveler.analysis.diagnose`).
     beyond_part_gains: ClassVar[bool] = False
+    # Its form is the physics itself, no approximation of it (a transport delay shifts the
+    # command in time), so the size gate in the fitted bins asks half as much of it.
+    exact_form: ClassVar[bool] = False
 
     def values(self) -> dict[str, Any]:
         return {f.name: getattr(self, f.name) for f in fields(self)}  # type: ignore[arg-type]
@@ -508,6 +511,7 @@ class ActuatorDelay(Effect):
     magnitude: ClassVar[str] = "delay_s"
     needs_excitation: ClassVar[bool] = True
     linear: ClassVar[bool] = False
+    exact_form: ClassVar[bool] = True
 
     delay_s: float = non_negative(0.0)
 
