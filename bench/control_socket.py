@@ -1,5 +1,5 @@
 """Control-socket figures: `status` round trip while the loop runs at 1 kHz, and whether
-the socket traffic costs the loop any overruns.
+the socket traffic (well-formed or malformed) costs the loop any overruns.
 
 Baselines measured in the same run: a bare Unix-socket echo (the floor for any round
 trip on this machine) and the same daemon's loop with no traffic.
@@ -54,6 +54,37 @@ def echo_rtt_s(n: int = 500) -> float:
     return statistics.median(times)
 
 
+# Malformed lines of the kinds tests/test_fuzz_socket.py sends, each refused with one error
+# on a connection that stays open: there the test judges the answers, here the loop's cost.
+MALFORMED = (
+    b'{"v":1,"verb":"tune","kp_v_per_m":1.5',
+    b'{"v":1,"verb":"sta\xfftus"}',
+    b'{"v":1,"verb":"fly"}',
+    b'{"v":2,"verb":"stop"}',
+    b'{"v":1,"verb":"tune","kp_v_per_m":NaN}',
+    b'{"v":1,"verb":"tune","kp_v_per_m":' + b"9" * 400 + b"}",
+    b"[" * 5000 + b"]" * 5000,
+)
+
+
+def malformed_storm(sock: Path, duration_s: float, batch: int = 50) -> int:
+    """Pipeline malformed lines on one connection for duration_s; return how many."""
+    lines = b"\n".join(MALFORMED[i % len(MALFORMED)] for i in range(batch)) + b"\n"
+    sent = 0
+    with socket.socket(socket.AF_UNIX) as s:
+        s.settimeout(10.0)
+        s.connect(str(sock))
+        replies = s.makefile("rb")
+        end = time.monotonic() + duration_s
+        while time.monotonic() < end:
+            s.sendall(lines)
+            for _ in range(batch):
+                if b'"ok":false' not in replies.readline():
+                    raise RuntimeError("a malformed line was not refused")
+            sent += batch
+    return sent
+
+
 def _overruns(sock: Path) -> tuple[int, int]:
     with Client(sock) as c:
         loop = c.request("status")["status"]["loop"]
@@ -62,7 +93,7 @@ def _overruns(sock: Path) -> tuple[int, int]:
 
 def daemon_figures(rate_hz: float = 1000.0, phase_s: float = 5.0) -> dict[str, float]:
     """Start the daemon at rate_hz: a quiet phase, back-to-back status requests (a storm),
-    then status at 50 requests/s (a busy lab)."""
+    status at 50 requests/s (a busy lab), then malformed lines back to back."""
     with tempfile.TemporaryDirectory() as tmp:
         tmpdir = Path(tmp)
         sock = tmpdir / "c.sock"
@@ -101,6 +132,8 @@ def daemon_figures(rate_hz: float = 1000.0, phase_s: float = 5.0) -> dict[str, f
                 paced.append(time.perf_counter() - t0)
                 time.sleep(max(0.0, 0.02 - (time.perf_counter() - t0)))
             o3, c3 = _overruns(sock)
+            junk = malformed_storm(sock, phase_s)
+            o4, c4 = _overruns(sock)
             cli = []
             for _ in range(5):
                 t0 = time.perf_counter()
@@ -121,6 +154,8 @@ def daemon_figures(rate_hz: float = 1000.0, phase_s: float = 5.0) -> dict[str, f
         "paced_requests": len(paced),
         "paced_rtt_median_s": statistics.median(paced),
         "overruns_per_1e5_paced": 1e5 * (o3 - o2) / max(c3 - c2, 1),
+        "malformed_lines": junk,
+        "overruns_per_1e5_malformed": 1e5 * (o4 - o3) / max(c4 - c3, 1),
     }
 
 
@@ -147,4 +182,7 @@ def run(quick: bool) -> list[dict[str, Any]]:
             note=f"round trip meanwhile {d['paced_rtt_median_s'] * 1e3:.3f} ms median"),
         row(SECTION, f"overruns per 1e5 cycles, status at {storm_rate:.0f}/s",
             d["overruns_per_1e5_storm"], "per 1e5", note="the back-to-back storm above"),
+        row(SECTION, f"overruns per 1e5 cycles, malformed lines at "
+            f"{d['malformed_lines'] / phase_s:.0f}/s", d["overruns_per_1e5_malformed"],
+            "per 1e5", note="pipelined on one connection, each refused with one error"),
     ]
