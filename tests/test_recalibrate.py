@@ -251,6 +251,12 @@ def test_degenerate_fits_are_no_evidence() -> None:
     assert "turns 1 times" in ActuatorHysteresis(width_v=1.0, fraction=0.05).degenerate(drift)  # type: ignore[arg-type]
     assert "fraction = 1 sits at its bound" in ActuatorHysteresis(
         width_v=0.5, fraction=1.0).degenerate(ev)  # type: ignore[arg-type]
+    # A loop the wrong way round (the stroke leading its command), with one play or two:
+    # no piezo runs it.
+    assert "the wrong way round" in ActuatorHysteresis(
+        width_v=0.5, fraction=-0.3).degenerate(ev)  # type: ignore[arg-type]
+    assert "the wrong way round" in ActuatorHysteresis(
+        width_v=0.5, fraction=-0.05, width2_v=2.0, weight2=0.5).degenerate(ev)  # type: ignore[arg-type]
     assert "sits at its bound" in SensorGainError(gain_error=-0.5).degenerate(ev)  # type: ignore[arg-type]
     assert SensorGainError(gain_error=0.2).degenerate(ev) == ""  # type: ignore[arg-type]
     # Reading half or double is the range, symmetric in the ratio: +60 % is no bound.

@@ -724,7 +724,13 @@ class ActuatorHysteresis(Effect):
         ring a pendulum whose response to fast steps the model has slightly wrong).
         And it must turn at all: an independent generator's closed-loop null log, the
         loop starting out of equilibrium, had a 2.25 V play that never turned in 3 h (a
-        ramp through its dead band, then a constant) named for that start's transient."""
+        ramp through its dead band, then a constant) named for that start's transient.
+        And its loop must run the way a piezo's does, the stroke lagging the command
+        (fraction > 0: below on the way up, above on the way down; the other way round
+        the actuator would give energy back every cycle). On tuning seeds 101-106 every
+        hysteresis named with a negative fraction was false (three, each a second effect,
+        after a sawtooth or a converter) and every true one was positive; the own
+        generator's converter of seed 58200 had a -0.48 play of 7.5 mV named after it."""
         spread = ev.command_spread_v()
         commands = ev.command_blocks_v()
         for w, _ in self._plays():
@@ -748,6 +754,9 @@ class ActuatorHysteresis(Effect):
         if share > GAIN_LIKE:
             return (f"where the fit finds its evidence, {share:.0%} of what the play adds is "
                     "a gain and an offset of the command: a gain, not hysteresis")
+        if self.fraction < 0:
+            return (f"fraction {self.fraction:.3g} < 0: a stroke that leads its command, a "
+                    "loop the wrong way round, which a piezo cannot run")
         return Effect.degenerate(self, ev)
 
     def describe(self) -> str:
