@@ -33,13 +33,18 @@ def _diagnose(tmp_path: Path, family: str | None, severity: str,
     return d, truth["params"]
 
 
+def _delay_alone_is_named(tmp_path: Path, severity: str, seed: int = 101) -> None:
+    """The delay is the only effect named, its fit within 30 % of the truth."""
+    d, truth = _diagnose(tmp_path, "actuator_delay", severity, seed)
+    assert [f.effect.name for f in d.effects] == ["actuator_delay"]
+    assert d.effects[0].effect.delay_s == pytest.approx(truth["delay_s"], rel=0.3)  # type: ignore[attr-defined]
+
+
 @pytest.mark.slow  # 60 s; make test-slow
 def test_a_delay_is_not_taken_for_a_mode_at_the_pendulum(tmp_path: Path) -> None:
     """A 44 ms delay shifts the phase at the pendulum's resonance; a mode of gain -0.97
     at 0.885 Hz (the pendulum's band) did the same and made it "ambiguous"."""
-    d, truth = _diagnose(tmp_path, "actuator_delay", "strong")
-    assert [f.effect.name for f in d.effects] == ["actuator_delay"]
-    assert d.effects[0].effect.delay_s == pytest.approx(truth["delay_s"], rel=0.3)  # type: ignore[attr-defined]
+    _delay_alone_is_named(tmp_path, "strong")
 
 
 @pytest.mark.slow  # 15 s
@@ -48,9 +53,7 @@ def test_a_weak_delay_under_a_square_fitted_short_is_still_a_delay(tmp_path: Pat
     refitted with it (the first recalibration took part of it into the pendulum's
     frequency and Q): under a tenth of the 100 ms sample it was thrown out as sampling and
     hold, and nothing was named."""
-    d, truth = _diagnose(tmp_path, "actuator_delay", "weak", seed=119)
-    assert [f.effect.name for f in d.effects] == ["actuator_delay"]
-    assert d.effects[0].effect.delay_s == pytest.approx(truth["delay_s"], rel=0.3)  # type: ignore[attr-defined]
+    _delay_alone_is_named(tmp_path, "weak", seed=119)
 
 
 @pytest.mark.slow  # 15 s
@@ -59,9 +62,7 @@ def test_a_weak_delay_under_a_triangle_passes_the_size_gate_of_an_exact_form(
     """A 13.6 ms delay under a triangle modulation fits at 14.6 ms and holds out at 288,
     but moves the reading by 0.13 of the sensor noise: the size gate for the fitted bins
     (a fifth of it, for forms that approximate the physics) threw it out."""
-    d, truth = _diagnose(tmp_path, "actuator_delay", "weak", seed=104)
-    assert [f.effect.name for f in d.effects] == ["actuator_delay"]
-    assert d.effects[0].effect.delay_s == pytest.approx(truth["delay_s"], rel=0.3)  # type: ignore[attr-defined]
+    _delay_alone_is_named(tmp_path, "weak", seed=104)
 
 
 @pytest.mark.slow  # 15 s
